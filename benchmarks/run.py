@@ -1,0 +1,142 @@
+"""goi's benchmarks: medians over repeated runs, printed as a table and optionally as JSON.
+
+    python benchmarks/run.py --suite raster [--json OUT] [--repeat 5]
+
+Figures are measured, never asserted: tests check behaviour, this checks speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from stages.gaussians import load_ply, save_ply  # noqa: E402
+from stages.synthetic import ring_cameras, room_vertex  # noqa: E402
+
+
+def median_s(fn: Callable[[], object], repeat: int, warmup: int = 1) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def synthetic_scene(n: int, tmp: Path, seed: int = 0):
+    path = tmp / f"room_{n}.ply"
+    if not path.exists():
+        v, _ = room_vertex(n, seed=seed)
+        save_ply(path, v, force=True)
+    return load_ply(path)
+
+
+def suite_raster(repeat: int, tmp: Path) -> dict[str, float]:
+    import torch
+
+    from stages import blend_cache as bc
+    from stages.rasterizer import Rasterizer, render, render_backward
+
+    out: dict[str, float] = {}
+    cams = ring_cameras(4, 640, 480)
+    for n, key in ((50_000, "50k"), (300_000, "300k")):
+        rast = Rasterizer.from_gaussians(synthetic_scene(n, tmp))
+        out[f"rgb_ms_640x480_{key}"] = 1e3 * median_s(lambda r=rast: r.render_rgb(cams[0]), repeat)
+    g = synthetic_scene(300_000, tmp)
+    rast = Rasterizer.from_gaussians(g)
+    bc.build_cache(rast, cams[:1], 0, "", "")  # compile
+    t = time.perf_counter()
+    cache = bc.build_cache(rast, cams, 0, "", "")
+    out["cache_s_per_view_640x480_300k"] = (time.perf_counter() - t) / len(cams)
+    path = tmp / "cache.h5"
+    cache.save(path)
+    out["cache_mib_per_view_640x480_300k"] = path.stat().st_size / 2**20 / len(cams)
+    out["cache_entries_per_pixel_640x480_300k"] = cache.weight_stats()["entries_per_pixel"]
+    for k in (16, 32):
+        masses = []
+        for v in cache.views.values():
+            _, _, kv = bc.top_k(v.indptr, v.indices, v.weights, k)
+            masses.append(float(kv.sum() / v.weights.sum()))
+        out[f"top{k}_mass_kept_640x480_300k"] = float(np.mean(masses))
+
+    fr = bc.FeatureRenderer(cache)
+    rng = np.random.default_rng(0)
+    feats = torch.randn(g.count, 10, requires_grad=True)
+    pixels = {c.name: np.sort(rng.choice(640 * 480, 64_000, replace=False)) for c in cams}
+    targets = torch.randn(4 * 64_000, 10)
+
+    def sparse_step() -> None:
+        rows = np.concatenate([fr.rows(c.name, pixels[c.name]) for c in cams])
+        loss = ((fr.render(feats, rows) - targets) ** 2).sum()
+        feats.grad = None
+        loss.backward()
+
+    out["sparse_fwd_bwd_ms_4x64k_300k"] = 1e3 * median_s(sparse_step, repeat)
+    full_fr = fr
+    fr = bc.FeatureRenderer(bc.build_cache(rast, cams, 16, "", ""))
+    out["sparse_fwd_bwd_ms_4x64k_300k_top16"] = 1e3 * median_s(sparse_step, repeat)
+    fr = full_fr
+
+    f_np = feats.detach().numpy()
+    tgt = targets.numpy().reshape(4, 64_000, 10)
+
+    def naive_step() -> None:
+        # What a differentiable rasteriser does each step: rasterise, then walk back.
+        grad = np.zeros_like(f_np)
+        for i, c in enumerate(cams):
+            proj, bins = rast.prepare(c)
+            img = render(proj, bins, f_np, c.width, c.height).image
+            g_img = np.zeros_like(img).reshape(-1, 10)
+            g_img[pixels[c.name]] = 2 * (img.reshape(-1, 10)[pixels[c.name]] - tgt[i])
+            grad += render_backward(proj, bins, g_img.reshape(img.shape), g.count)
+
+    out["naive_fwd_bwd_ms_4x64k_300k"] = 1e3 * median_s(naive_step, max(3, repeat // 2))
+    out["naive_over_cache"] = (
+        out["naive_fwd_bwd_ms_4x64k_300k"] / out["sparse_fwd_bwd_ms_4x64k_300k"]
+    )
+    return out
+
+
+SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {"raster": suite_raster}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument(
+        "--suite",
+        choices=sorted(SUITES),
+        action="append",
+        required=True,
+        help="suite to run (repeatable)",
+    )
+    ap.add_argument("--json", type=Path, help="also write the figures as one flat JSON object")
+    ap.add_argument("--repeat", type=int, default=5, help="timed runs per figure (median)")
+    args = ap.parse_args()
+    import numba
+
+    figures: dict[str, float] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.suite:
+            figures.update(SUITES[name](args.repeat, Path(tmp)))
+    print(f"{'figure':44s} {'median':>12s}   ({numba.get_num_threads()} threads)")
+    for k, v in figures.items():
+        print(f"{k:44s} {v:12.3f}")
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,80 @@
+"""The `goi` program: one subcommand per stage, clean errors, exit codes 0 / 1 / 2."""
+
+from __future__ import annotations
+
+import os
+import sys
+import traceback
+import warnings
+from collections.abc import Sequence
+
+import click
+
+from goi_cli import commands
+from stages import __version__
+from stages.artifacts import set_command
+from stages.errors import GoiError
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="goi")
+@click.option(
+    "--debug",
+    is_flag=True,
+    help="Show the full traceback when something fails "
+    "(also GOI_DEBUG=1). Accepted anywhere on the command line.",
+)
+def cli(debug: bool) -> None:
+    """Find the 3D Gaussians of interest in a 3D Gaussian Splatting scene from a text prompt.
+
+    Each stage reads and writes explicit artifact files (HDF5 or PLY) whose schema and
+    provenance are recorded inside; `goi inspect FILE` shows what a file holds.
+    """
+
+
+commands.register(cli)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    print(f"goi: warning: {message}", file=sys.stderr)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in args or os.environ.get("GOI_DEBUG", "") not in ("", "0")
+    args = [a for a in args if a != "--debug"]
+    set_command(["goi", *args])
+    old_show = warnings.showwarning
+    warnings.showwarning = _show_warning
+    try:
+        rc = cli.main(args=args, prog_name="goi", standalone_mode=False)
+        code = rc if isinstance(rc, int) else 0
+    except click.exceptions.Abort:
+        print("goi: interrupted", file=sys.stderr)
+        code = 130
+    except KeyboardInterrupt:
+        print("goi: interrupted", file=sys.stderr)
+        code = 130
+    except click.ClickException as e:
+        e.show()
+        code = 2
+    except GoiError as e:
+        if debug:
+            traceback.print_exc()
+        print(f"goi: error: {e}", file=sys.stderr)
+        code = 2
+    except Exception as e:  # a bug in goi, not the user's input
+        if debug:
+            traceback.print_exc()
+        print(
+            f"goi: internal error: {type(e).__name__}: {e} (run with --debug for the traceback)",
+            file=sys.stderr,
+        )
+        code = 1
+    finally:
+        warnings.showwarning = old_show
+    return code
+
+
+def entry() -> None:
+    sys.exit(main())

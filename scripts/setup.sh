@@ -1,0 +1,18 @@
+# Sourced by goi.sh and test.sh: create .venv and install goi into it (idempotent).
+# torch is installed first and pinned: that takes the CPU wheel; an open range pulls CUDA.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+PY="${PYTHON:-$(command -v python3.11 || command -v python3)}"
+"$PY" -c 'import sys; sys.exit(sys.version_info < (3, 11))' \
+  || { echo "goi needs Python >= 3.11 (found $("$PY" --version))" >&2; exit 2; }
+if [ ! -x "$ROOT/.venv/bin/python" ]; then
+  "$PY" -m venv "$ROOT/.venv"
+fi
+VENV="$ROOT/.venv"
+EXTRAS="${GOI_EXTRAS:-}"
+STAMP="$VENV/.goi-installed$EXTRAS"
+if [ ! -f "$STAMP" ] || [ "$ROOT/pyproject.toml" -nt "$STAMP" ]; then
+  "$VENV/bin/python" -m pip install -q --disable-pip-version-check torch==2.13.0 >&2
+  "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e "$ROOT$EXTRAS" >&2
+  touch "$STAMP"
+fi

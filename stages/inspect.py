@@ -1,0 +1,91 @@
+"""`goi inspect`: what a PLY or HDF5 artifact holds, and whether it is valid."""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from schemas import validate_file
+from stages.errors import GoiError
+from stages.gaussians import load_ply
+
+
+def inspect_ply(path: Path) -> tuple[list[str], list[str]]:
+    """Lines describing the PLY and the problems found (a problem that stops loading raises)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        g = load_ply(path)
+    problems = [str(w.message) for w in caught]
+    lo, hi = g.means.min(0), g.means.max(0)
+    lines = [
+        f"{path}: INRIA 3DGS PLY",
+        f"  gaussians     {g.count}",
+        f"  sh degree     {g.sh_degree} ({g.sh.shape[1]} coefficients per channel)",
+        f"  normals       {'yes' if 'nx' in (g.vertex.dtype.names or ()) else 'no'}",
+        f"  extra fields  {', '.join(g.extra_fields) or 'none'}",
+        f"  bounds        x [{lo[0]:.3f}, {hi[0]:.3f}]  y [{lo[1]:.3f}, {hi[1]:.3f}]  "
+        f"z [{lo[2]:.3f}, {hi[2]:.3f}]",
+        f"  opacity       median {np.median(g.opacities):.3f}, "
+        f"{int((g.opacities < 1 / 255).sum())} below 1/255",
+        f"  scale         median {np.median(g.scales):.4g}, max {g.scales.max():.4g}",
+    ]
+    return lines, problems
+
+
+def _describe_h5(f: h5py.File) -> list[str]:
+    lines: list[str] = []
+    for key in ("schema", "schema_version", "goi_version", "created", "command"):
+        if key in f.attrs:
+            lines.append(f"  {key:14s}{f.attrs[key]}")
+    if "inputs" in f.attrs:
+        try:
+            for role, digest in json.loads(f.attrs["inputs"]).items():
+                lines.append(f"  input         {role}: sha256 {str(digest)[:16]}...")
+        except (ValueError, AttributeError):
+            pass
+    skip = {"schema", "schema_version", "goi_version", "created", "command", "inputs"}
+    for key, value in f.attrs.items():
+        if key not in skip:
+            lines.append(f"  attr          {key} = {_short(value)}")
+    datasets: list[str] = []
+    groups: dict[str, int] = {}
+
+    def visit(name: str, obj: object) -> None:
+        parts = name.split("/")
+        if len(parts) > 2 and len(datasets) > 40:  # summarise wide per-view trees
+            groups[parts[0]] = groups.get(parts[0], 0) + 1
+            return
+        if isinstance(obj, h5py.Dataset):
+            datasets.append(f"  dataset       {name} {obj.dtype} {list(obj.shape)}")
+
+    f.visititems(visit)
+    lines += datasets
+    lines += [f"  ...           {n} more datasets under {g}/" for g, n in groups.items()]
+    return lines
+
+
+def _short(value: object) -> str:
+    text = str(value)
+    return text if len(text) < 80 else text[:77] + "..."
+
+
+def inspect_file(path: str | os.PathLike[str]) -> tuple[list[str], list[str]]:
+    p = Path(path)
+    if not p.is_file():
+        raise GoiError(f"{p}: no such file")
+    with open(p, "rb") as fh:
+        magic = fh.read(8)
+    if magic.startswith(b"ply"):
+        return inspect_ply(p)
+    if magic == b"\x89HDF\r\n\x1a\n":
+        schema, problems = validate_file(p)
+        lines = [f"{p}: HDF5 artifact {schema or '(no goi schema)'}"]
+        with h5py.File(p, "r") as f:
+            lines += _describe_h5(f)
+        return lines, problems
+    raise GoiError(f"{p}: neither a PLY nor an HDF5 file")
