@@ -547,30 +547,46 @@ def sh_to_rgb(sh: np.ndarray, means: np.ndarray, center: np.ndarray) -> np.ndarr
 
 
 class Rasterizer:
-    """Renders one scene's Gaussians from any camera (RGB, features, alpha, depth)."""
+    """Renders one scene's Gaussians from any camera (RGB, features, alpha, depth).
 
-    def __init__(self, means, quats, scales, opacities, sh, valid):
+    `backend`: "cpu" (numba), "gsplat" (CUDA, needs gsplat) or "auto" (gsplat when present).
+    """
+
+    def __init__(self, means, quats, scales, opacities, sh, valid, backend: str = "cpu"):
         self.means = np.ascontiguousarray(means, np.float32)  # [N, 3]
         self.quats = np.ascontiguousarray(quats, np.float32)  # [N, 4]
         self.scales = np.ascontiguousarray(scales, np.float32)  # [N, 3]
         self.opacities = np.ascontiguousarray(opacities, np.float32)  # [N]
         self.sh = np.ascontiguousarray(sh, np.float32)  # [N, K, 3]
         self.valid = np.ascontiguousarray(valid, np.bool_)  # [N]
+        if backend == "auto":
+            from stages.gpu import gsplat_available
+
+            backend = "gsplat" if gsplat_available() else "cpu"
+        self.backend = backend
 
     @classmethod
-    def from_gaussians(cls, g) -> Rasterizer:  # noqa: ANN001 - stages.gaussians.Gaussians
-        return cls(g.means, g.quats, g.scales, g.opacities, g.sh, g.valid)
+    def from_gaussians(cls, g, backend: str = "cpu") -> Rasterizer:  # noqa: ANN001
+        return cls(g.means, g.quats, g.scales, g.opacities, g.sh, g.valid, backend)
 
     def prepare(self, cam: Camera) -> tuple[Projected, Bins]:
         proj = project(self.means, self.quats, self.scales, self.opacities, self.valid, cam)
         return proj, bin_tiles(proj, cam.width, cam.height)
 
     def render_rgb(self, cam: Camera, background=(0.0, 0.0, 0.0)) -> Rendered:
+        if self.backend == "gsplat":
+            from stages.gpu import render_gsplat
+
+            return render_gsplat(self, cam, None, np.asarray(background, np.float32))
         proj, bins = self.prepare(cam)
         colors = sh_to_rgb(self.sh, self.means, cam.center)
         return render(proj, bins, colors, cam.width, cam.height, np.asarray(background))
 
     def render_features(self, cam: Camera, features: np.ndarray) -> Rendered:
+        if self.backend == "gsplat":
+            from stages.gpu import render_gsplat
+
+            return render_gsplat(self, cam, np.asarray(features, np.float32))
         proj, bins = self.prepare(cam)
         return render(proj, bins, features, cam.width, cam.height)
 

@@ -111,3 +111,12 @@ def test_bins_are_front_to_back(tmp_path):
     for t in range(len(bins.offsets) - 1):
         d = proj.depths[bins.ids[bins.offsets[t] : bins.offsets[t + 1]]]
         assert np.all(np.diff(d) >= 0)
+
+
+def test_gpu_path_is_optional(tmp_path):
+    from stages.gpu import gsplat_available, padded_channels
+
+    assert [padded_channels(n) for n in (3, 6, 10, 16, 300)] == [3, 8, 16, 16, 513]
+    g, _ = _scene(tmp_path)
+    r = Rasterizer.from_gaussians(g, backend="auto")
+    assert r.backend == ("gsplat" if gsplat_available() else "cpu")
