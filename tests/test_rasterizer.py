@@ -116,7 +116,7 @@ def test_bins_are_front_to_back(tmp_path):
 def test_gpu_path_is_optional(tmp_path):
     from stages.gpu import gsplat_available, padded_channels
 
-    assert [padded_channels(n) for n in (3, 6, 10, 16, 300)] == [3, 8, 16, 16, 513]
+    assert [padded_channels(n) for n in (3, 6, 10, 16, 300)] == [3, 8, 16, 16, 512]
     g, _ = _scene(tmp_path)
     r = Rasterizer.from_gaussians(g, backend="auto")
     assert r.backend == ("gsplat" if gsplat_available() else "cpu")
