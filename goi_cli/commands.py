@@ -2,9 +2,73 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
+from goi_cli.options import build, dataclass_options, load_scene_from, scene_options
+from stages.codebook import CodebookOptions
 from stages.errors import GoiError
+from stages.extract import ExtractOptions
+from stages.field import FieldOptions
+
+EXISTING = click.Path(exists=True, dir_okay=False, path_type=Path)
+
+
+@click.command("extract")
+@scene_options
+@click.option(
+    "--from",
+    "source",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Directory of precomputed per-image features: <view>.npy [D, h, w] or the "
+    "authors' APE <view>.pt (float16 [D, H, W]).",
+)
+@dataclass_options(ExtractOptions)
+def extract_cmd(source: Path, **kw) -> None:
+    """Write the features artifact of the scene's training views.
+
+    Feature maps are imported from --from DIR, checked (shape, dimension, NaN) and stored as
+    float16 [h, w, D]. An interrupted run resumes from <out>.partial.
+    """
+    from stages.extract import import_features
+
+    scene = load_scene_from(kw)
+    out = import_features(scene, source, build(ExtractOptions, kw))
+    click.echo(f"features: {out}")
+
+
+@click.command("init-codebook")
+@click.option("--features", type=EXISTING, required=True, help="Features artifact (goi extract).")
+@dataclass_options(CodebookOptions)
+def init_codebook_cmd(features: Path, **kw) -> None:
+    """Initialise the codebook (TFCC) by spherical k-means over sampled features."""
+    from stages.codebook import init_codebook
+
+    out = init_codebook(features, build(CodebookOptions, kw))
+    click.echo(f"codebook: {out}")
+
+
+@click.command("fit-field")
+@scene_options
+@click.option("--features", type=EXISTING, required=True, help="Features artifact (goi extract).")
+@click.option(
+    "--codebook", type=EXISTING, required=True, help="Codebook artifact (goi init-codebook)."
+)
+@dataclass_options(FieldOptions)
+def fit_field_cmd(features: Path, codebook: Path, **kw) -> None:
+    """Fit the semantic field: a low-dimensional feature per Gaussian, the decoder and the
+    trainable codebook, with the Gaussians frozen (paper sections 3.3-3.4).
+
+    Training renders through the blend cache, which is built once per PLY and cameras and
+    reused. A checkpoint is written every --checkpoint-every iterations; --resume continues it.
+    """
+    from stages.field import fit_field
+
+    scene = load_scene_from(kw)
+    out = fit_field(scene, features, codebook, build(FieldOptions, kw))
+    click.echo(f"field: {out}")
 
 
 @click.command("inspect")
@@ -29,4 +93,8 @@ def inspect_cmd(files: tuple[str, ...]) -> None:
 
 
 def register(group: click.Group) -> None:
+    group.add_command(extract_cmd)
+    group.add_command(extract_cmd, "extract-features")
+    group.add_command(init_codebook_cmd)
+    group.add_command(fit_field_cmd)
     group.add_command(inspect_cmd)

@@ -85,6 +85,83 @@ def top_k(
     return new_ptr, new_ids, new_vals
 
 
+@numba.njit(cache=True)
+def _pool_kernel(
+    indptr,
+    indices,
+    weights,
+    width,
+    cell_y0,
+    cell_y1,
+    cell_x0,
+    cell_x1,
+    n_gauss,
+    out_ptr,
+    out_ids,
+    out_w,
+):
+    """Each cell's row = the mean of its pixels' rows (entries of one Gaussian merged)."""
+    acc = np.zeros(n_gauss, np.float32)
+    seen = np.zeros(n_gauss, np.bool_)
+    touched = np.empty(n_gauss, np.int32)
+    pos = 0
+    cell = 0
+    for cy in range(cell_y0.shape[0]):
+        for cx in range(cell_x0.shape[0]):
+            n_t = 0
+            n_pix = (cell_y1[cy] - cell_y0[cy]) * (cell_x1[cx] - cell_x0[cx])
+            for y in range(cell_y0[cy], cell_y1[cy]):
+                for x in range(cell_x0[cx], cell_x1[cx]):
+                    r = y * width + x
+                    for j in range(indptr[r], indptr[r + 1]):
+                        g = indices[j]
+                        if not seen[g]:
+                            seen[g] = True
+                            touched[n_t] = g
+                            n_t += 1
+                        acc[g] += weights[j]
+            ids = np.sort(touched[:n_t])
+            for g in ids:
+                out_ids[pos] = g
+                out_w[pos] = acc[g] / n_pix
+                pos += 1
+                acc[g] = 0.0
+                seen[g] = False
+            cell += 1
+            out_ptr[cell] = pos
+    return pos
+
+
+def _cell_bounds(n_pix: int, n_cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel ranges [start, end) per cell; pixel y is in cell floor((y + .5) n_cells / n_pix)."""
+    cell = ((np.arange(n_pix) + 0.5) * n_cells / n_pix).astype(np.int64)
+    start = np.searchsorted(cell, np.arange(n_cells), side="left")
+    end = np.searchsorted(cell, np.arange(n_cells), side="right")
+    return start, end
+
+
+def pool(
+    indptr: np.ndarray,
+    ids: np.ndarray,
+    vals: np.ndarray,
+    width: int,
+    height: int,
+    cells_w: int,
+    cells_h: int,
+    n_gaussians: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Average a [height * width] pixel CSR into a [cells_h * cells_w] cell CSR: since a render
+    is linear in the weights, a cell's row renders the mean of its pixels' features, which is
+    what an area-downsampled feature map holds."""
+    y0, y1 = _cell_bounds(height, cells_h)
+    x0, x1 = _cell_bounds(width, cells_w)
+    out_ptr = np.zeros(cells_w * cells_h + 1, np.int64)
+    out_ids = np.empty(len(ids), np.int32)
+    out_w = np.empty(len(ids), np.float32)
+    n = _pool_kernel(indptr, ids, vals, width, y0, y1, x0, x1, n_gaussians, out_ptr, out_ids, out_w)
+    return out_ptr, out_ids[:n].copy(), out_w[:n].copy()
+
+
 @dataclass
 class ViewWeights:
     """One view's W as CSR [height * width, n_gaussians]; columns are positions in `order`."""
@@ -102,16 +179,24 @@ class ViewWeights:
         return self.indptr.nbytes + self.indices.nbytes + self.weights.nbytes
 
 
-def view_weights(rast: Rasterizer, cam: Camera, position: np.ndarray, k: int = 0) -> ViewWeights:
-    """Rasterise `cam` once and keep its weights; `position` maps Gaussian id -> column."""
+def view_weights(
+    rast: Rasterizer,
+    cam: Camera,
+    position: np.ndarray,
+    k: int = 0,
+    size: tuple[int, int] | None = None,
+) -> ViewWeights:
+    """Rasterise `cam` once and keep its weights; `position` maps Gaussian id -> column.
+    With `size` (width, height) smaller than the image, pixels are pooled into that grid."""
     proj, bins = rast.prepare(cam)
     indptr, ids, vals = blend_weights(proj, bins, cam.width, cam.height)
     total = float(vals.sum(dtype=np.float64))
     kp, ki, kv = top_k(indptr, position[ids], vals, k)
     kept = float(kv.sum(dtype=np.float64))
-    return ViewWeights(
-        cam.width, cam.height, kp, ki, kv, kept / total if total > 0 else 1.0, int(len(ids))
-    )
+    w, h = size or (cam.width, cam.height)
+    if (w, h) != (cam.width, cam.height):
+        kp, ki, kv = pool(kp, ki, kv, cam.width, cam.height, w, h, len(position))
+    return ViewWeights(w, h, kp, ki, kv, kept / total if total > 0 else 1.0, int(len(ids)))
 
 
 @dataclass
@@ -190,13 +275,18 @@ class BlendCache:
 
 
 def build_cache(
-    rast: Rasterizer, cameras: list[Camera], k: int, ply_sha256: str, cameras_sha256: str
+    rast: Rasterizer,
+    cameras: list[Camera],
+    k: int,
+    ply_sha256: str,
+    cameras_sha256: str,
+    sizes: dict[str, tuple[int, int]] | None = None,
 ) -> BlendCache:
     order = morton_order(rast.means)
     position = np.empty_like(order)
     position[order] = np.arange(len(order), dtype=np.int32)
     views = {
-        cam.name: view_weights(rast, cam, position, k)
+        cam.name: view_weights(rast, cam, position, k, (sizes or {}).get(cam.name))
         for cam in progress(cameras, "blend cache", length=len(cameras))
     }
     return BlendCache(order, views, k, ply_sha256, cameras_sha256)
@@ -204,31 +294,44 @@ def build_cache(
 
 def build_or_load(
     path: str | os.PathLike[str],
-    scene,
-    cameras: list[Camera],  # noqa: ANN001
+    scene,  # noqa: ANN001 - stages.scene.Scene
+    cameras: list[Camera],
     k: int = 0,
+    sizes: dict[str, tuple[int, int]] | None = None,
 ) -> BlendCache:
     """The cache for these views, reused from `path` when it was built for the same PLY,
-    cameras and top-K, otherwise (re)built and written there."""
+    cameras, top-K and view sizes, otherwise (re)built and written there. `sizes` gives a
+    view's (width, height) when it is to be pooled below image resolution."""
     ply_sha, cam_sha = scene.ply_digest(), scene.cameras_digest()
+    want = {c.name: (sizes or {}).get(c.name, (c.width, c.height)) for c in cameras}
     p = Path(path)
-    if p.is_file():
+    if p.is_file() and _matches(p, ply_sha, cam_sha, k, want):
+        cache = BlendCache.load(p)
+        cache.views = {c.name: cache.views[c.name] for c in cameras}
+        return cache
+    rast = Rasterizer.from_gaussians(scene.gaussians)
+    cache = build_cache(rast, cameras, k, ply_sha, cam_sha, want)
+    cache.save(p, force=True)
+    return cache
+
+
+def _matches(p: Path, ply_sha: str, cam_sha: str, k: int, want: dict[str, tuple[int, int]]) -> bool:
+    try:
         with h5py.File(p, "r") as f:
-            a = f.attrs
-            same = (
+            a, views = f.attrs, f.get("views", {})
+            return (
                 a.get("schema") == SCHEMA
                 and a.get("ply_sha256") == ply_sha
                 and a.get("cameras_sha256") == cam_sha
                 and int(a.get("top_k", -1)) == k
-                and all(c.name in f.get("views", {}) for c in cameras)
+                and all(
+                    v in views
+                    and (int(views[v].attrs["width"]), int(views[v].attrs["height"])) == wh
+                    for v, wh in want.items()
+                )
             )
-        if same:
-            cache = BlendCache.load(p)
-            cache.views = {c.name: cache.views[c.name] for c in cameras}
-            return cache
-    cache = build_cache(Rasterizer.from_gaussians(scene.gaussians), cameras, k, ply_sha, cam_sha)
-    cache.save(p, force=True)
-    return cache
+    except (OSError, KeyError):
+        return False
 
 
 # --- sparse feature rendering -------------------------------------------------------------

@@ -17,7 +17,11 @@ def progress(
     length: int | None = None,
     show: Callable[[T | None], str | None] | None = None,
 ) -> Iterator[T]:
-    """Yield `items` while drawing a bar (a label line only, when stderr is not a terminal)."""
+    """Yield `items` while drawing a bar on a terminal; silent otherwise, so that logs and
+    pipelines see only results and errors."""
+    if not sys.stderr.isatty():
+        yield from items
+        return
     with click.progressbar(
         items,
         length=length,

@@ -160,3 +160,57 @@ def _colmap_params(c: Camera, model: str) -> list[float]:
 
 def _fl(values) -> str:
     return " ".join(repr(float(v)) for v in values)
+
+
+def semantic_scene(
+    root: Path,
+    n: int = 20000,
+    n_views: int = 12,
+    size: tuple[int, int] = (128, 96),
+    stride: int = 4,
+    dim: int = 32,
+    noise: float = 0.3,
+    seed: int = 0,
+) -> dict:
+    """A room with 4 objects whose 2D features are constant per object plus noise.
+
+    Writes root/scene (PLY, cameras.json, split.json: even views train, odd views test) and
+    root/features/<view>.npy [dim, h, w] for the training views; returns what tests compare to.
+    """
+    import cv2
+
+    from stages.gaussians import load_ply
+    from stages.rasterizer import Rasterizer
+    from stages.synthetic import ring_cameras, room_vertex
+
+    scene = root / "scene"
+    scene.mkdir(parents=True)
+    v, ids = room_vertex(n, seed=seed, n_objects=4)
+    write_ply(scene / "point_cloud.ply", v)
+    cams = ring_cameras(n_views, *size, radius=1.9, height_m=1.5)
+    write_inria(scene / "cameras.json", cams)
+    train = [c.name for c in cams[0::2]]
+    test = [c.name for c in cams[1::2]]
+    (scene / "split.json").write_text(json.dumps({"train": train, "test": test}))
+    rng = np.random.default_rng(seed)
+    objects = rng.normal(size=(ids.max() + 1, dim))
+    objects /= np.linalg.norm(objects, axis=1, keepdims=True)
+    onehot = np.eye(ids.max() + 1, dtype=np.float32)[ids]
+    rast = Rasterizer.from_gaussians(load_ply(scene / "point_cloud.ply"))
+    feats = root / "features"
+    feats.mkdir()
+    for c in cams[0::2]:
+        share = rast.render_features(c, onehot).image  # [H, W, K]
+        f = share @ objects + rng.normal(0, noise / np.sqrt(dim), (c.height, c.width, dim))
+        h, w = c.height // stride, c.width // stride
+        small = cv2.resize(f.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+        np.save(feats / f"{c.name}.npy", small.transpose(2, 0, 1).astype(np.float16))
+    return {
+        "scene": scene,
+        "features": feats,
+        "objects": objects,
+        "onehot": onehot,
+        "train": train,
+        "test": test,
+        "cameras": {c.name: c for c in cams},
+    }

@@ -125,3 +125,25 @@ def test_cache_columns_follow_the_recorded_order(tmp_path):
     proj, bins = rast.prepare(scene.camera("a"))
     _, ids, _ = blend_weights(proj, bins, 48, 40)
     np.testing.assert_array_equal(cache.order[cache.views["a"].indices], ids)
+
+
+def test_pooled_rows_render_the_mean_of_their_pixels(tmp_path):
+    scene = _scene_dir(tmp_path, n=300)
+    full = bc.build_or_load(tmp_path / "full.h5", scene, scene.views("train"))
+    pooled = bc.build_or_load(
+        tmp_path / "pool.h5", scene, scene.views("train"), sizes={"a": (7, 5), "b": (7, 5)}
+    )
+    f = torch.from_numpy(
+        np.random.default_rng(0).normal(size=(scene.gaussians.count, 4)).astype(np.float32)
+    )
+    img = bc.FeatureRenderer(full).render(f, np.arange(48 * 40)).numpy().reshape(40, 48, 4)
+    cells = bc.FeatureRenderer(pooled, ["a"]).render(f, np.arange(35)).numpy().reshape(5, 7, 4)
+    ys = ((np.arange(40) + 0.5) * 5 / 40).astype(int)
+    xs = ((np.arange(48) + 0.5) * 7 / 48).astype(int)
+    for cy in range(5):
+        for cx in range(7):
+            block = img[np.ix_(ys == cy, xs == cx)].reshape(-1, 4)
+            np.testing.assert_allclose(cells[cy, cx], block.mean(0), atol=1e-5)
+    # A different size is a different cache: rebuilt, not reused.
+    again = bc.build_or_load(tmp_path / "pool.h5", scene, scene.views("train"))
+    assert again.views["a"].width == 48

@@ -1,0 +1,126 @@
+"""Click options generated from a stage's options dataclass, so each option is defined once:
+its name, type, default and help all come from the dataclass field and its docstring."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import textwrap
+import types
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring written under each field of a dataclass."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs = {}
+    for a, b in zip(body, body[1:], strict=False):
+        if (
+            isinstance(a, ast.AnnAssign)
+            and isinstance(a.target, ast.Name)
+            and isinstance(b, ast.Expr)
+            and isinstance(b.value, ast.Constant)
+            and isinstance(b.value.value, str)
+        ):
+            docs[a.target.id] = " ".join(b.value.value.split())
+    return docs
+
+
+def _base_type(tp: Any) -> Any:
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return args[0]
+    return tp
+
+
+def dataclass_options(cls: type, skip: tuple[str, ...] = ()) -> Callable:
+    """Decorate a command with one option per field of `cls` (snake_case -> --kebab-case)."""
+    docs = field_docs(cls)
+    hints = typing.get_type_hints(cls)
+
+    def decorate(fn: Callable) -> Callable:
+        for f in reversed(dataclasses.fields(cls)):
+            if f.name in skip:
+                continue
+            flag = "--" + f.name.replace("_", "-")
+            tp = _base_type(hints[f.name])
+            required = f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+            default = None if required else f.default
+            help_ = docs.get(f.name, "")
+            if tp is bool:
+                fn = click.option(flag, f.name, is_flag=True, default=default, help=help_)(fn)
+            elif tp is Path:
+                fn = click.option(
+                    flag,
+                    f.name,
+                    type=click.Path(path_type=Path),
+                    required=required,
+                    default=default,
+                    show_default=default is not None,
+                    help=help_,
+                )(fn)
+            else:
+                fn = click.option(
+                    flag,
+                    f.name,
+                    type=tp,
+                    required=required,
+                    default=default,
+                    show_default=True,
+                    help=help_,
+                )(fn)
+        return fn
+
+    return decorate
+
+
+def build(cls: type, kwargs: dict[str, Any]) -> Any:
+    """The options object from the parsed keyword arguments (removing them from kwargs)."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    return cls(**{k: kwargs.pop(k) for k in list(kwargs) if k in names})
+
+
+def scene_options(fn: Callable) -> Callable:
+    """--scene DIR, or explicit --ply/--cameras/--images (they override the directory's)."""
+    for opt in reversed(
+        [
+            click.option(
+                "--scene",
+                type=click.Path(path_type=Path),
+                help="Scene directory: point_cloud.ply, cameras (cameras.json, "
+                "transforms*.json or sparse/), images/, split.json.",
+            ),
+            click.option(
+                "--ply",
+                type=click.Path(path_type=Path),
+                help="The 3DGS PLY (INRIA layout), instead of the scene's.",
+            ),
+            click.option(
+                "--cameras",
+                type=click.Path(path_type=Path),
+                help="cameras.json, transforms*.json or a COLMAP model directory.",
+            ),
+            click.option(
+                "--images",
+                type=click.Path(path_type=Path),
+                help="Directory of the training images.",
+            ),
+        ]
+    ):
+        fn = opt(fn)
+    return fn
+
+
+def load_scene_from(kwargs: dict[str, Any]):  # noqa: ANN201
+    from stages.scene import load_scene
+
+    return load_scene(
+        kwargs.pop("scene"), kwargs.pop("ply"), kwargs.pop("cameras"), kwargs.pop("images")
+    )

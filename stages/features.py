@@ -1,0 +1,62 @@
+"""The features artifact: per training view a dense [h, w, D] map of language-aligned features.
+
+Readers get float32, L2-normalised per cell (GOI only ever compares features by cosine).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from stages.artifacts import open_h5
+from stages.errors import GoiError
+
+SCHEMA = "goi.features"
+
+
+@dataclass
+class FeatureMaps:
+    path: Path
+    dim: int
+    maps: dict[str, np.ndarray]  # view -> [h, w, D] float32, unit norm (zero cells stay zero)
+    image_sizes: dict[str, tuple[int, int]]  # view -> (width, height)
+
+    @property
+    def views(self) -> list[str]:
+        return list(self.maps)
+
+
+def normalise(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    n = np.linalg.norm(x, axis=axis, keepdims=True)
+    return x / np.maximum(n, 1e-12)
+
+
+def load_features(path: str | os.PathLike[str], views: list[str] | None = None) -> FeatureMaps:
+    p = Path(path)
+    with open_h5(p, SCHEMA) as f:
+        dim = int(f.attrs["dim"])
+        names = list(f["views"]) if views is None else views
+        missing = [v for v in names if v not in f["views"]]
+        if missing:
+            raise GoiError(
+                f"{p}: no features for view(s) {', '.join(missing[:5])}"
+                f"{' ...' if len(missing) > 5 else ''}; re-run goi extract"
+            )
+        maps, sizes = {}, {}
+        for v in names:
+            g = f["views"][v]
+            m = g["features"][()].astype(np.float32)
+            if not np.isfinite(m).all():
+                raise GoiError(f"{p}: features of view '{v}' contain NaN/inf")
+            maps[v] = normalise(m)
+            sizes[v] = (int(g.attrs["image_width"]), int(g.attrs["image_height"]))
+    return FeatureMaps(p, dim, maps, sizes)
+
+
+def feature_dim(path: str | os.PathLike[str]) -> int:
+    with h5py.File(path, "r") as f:
+        return int(f.attrs["dim"])

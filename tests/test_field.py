@@ -1,0 +1,160 @@
+import h5py
+import numpy as np
+import pytest
+
+from goi_cli.main import main
+from stages.field import load_field
+from stages.gaussians import load_ply
+from stages.rasterizer import Rasterizer
+from tests.helpers import semantic_scene
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sem")
+    s = semantic_scene(root)
+    run = root / "run"
+    run.mkdir()
+    assert (
+        main(
+            [
+                "extract",
+                "--scene",
+                str(s["scene"]),
+                "--from",
+                str(s["features"]),
+                "--out",
+                str(run / "features.h5"),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "init-codebook",
+                "--features",
+                str(run / "features.h5"),
+                "--entries",
+                "16",
+                "--out",
+                str(run / "codebook.h5"),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "fit-field",
+                "--scene",
+                str(s["scene"]),
+                "--features",
+                str(run / "features.h5"),
+                "--codebook",
+                str(run / "codebook.h5"),
+                "--out",
+                str(run / "field.h5"),
+                "--iterations",
+                "400",
+                "--checkpoint-every",
+                "0",
+            ]
+        )
+        == 0
+    )
+    return s, run
+
+
+@pytest.mark.slow
+def test_held_out_views_decode_to_each_objects_feature(fitted):
+    s, run = fitted
+    field = load_field(run / "field.h5")
+    rast = Rasterizer.from_gaussians(load_ply(s["scene"] / "point_cloud.ply"))
+    table = field.unit_codebook()
+    good = total = 0
+    for name in s["test"]:
+        cam = s["cameras"][name]
+        f_hat = rast.render_features(cam, field.features).image.reshape(-1, field.features.shape[1])
+        share = rast.render_features(cam, s["onehot"]).image.reshape(-1, s["onehot"].shape[1])
+        covered = share.sum(1) > 0.5
+        truth = s["objects"][share.argmax(1)]
+        cos = (table[field.decode_index(f_hat)] * truth).sum(1)
+        good += int((cos[covered] >= 0.9).sum())
+        total += int(covered.sum())
+    assert total > 0.8 * len(s["test"]) * 128 * 96
+    assert good / total >= 0.95, good / total
+
+
+@pytest.mark.slow
+def test_the_loss_decreases_and_the_field_describes_itself(fitted):
+    _, run = fitted
+    with h5py.File(run / "field.h5") as f:
+        curve = f["loss_curve"][()]
+        assert f.attrs["schema"] == "goi.field" and f.attrs["iterations"] == 400
+        assert f["features"].shape[1] == 10 and f["codebook"].shape == (16, 32)
+    assert curve.shape == (400, 5)
+    assert curve[-50:, 0].mean() < 0.8 * curve[:10, 0].mean()
+    assert (
+        main(
+            [
+                "inspect",
+                str(run / "field.h5"),
+                str(run / "codebook.h5"),
+                str(run / "features.h5"),
+                str(run / "blend_cache.h5"),
+            ]
+        )
+        == 0
+    )
+
+
+def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, monkeypatch):
+    import stages.field as field_mod
+    from stages.codebook import CodebookOptions, init_codebook
+    from stages.extract import ExtractOptions, import_features
+    from stages.field import FieldOptions, fit_field
+    from stages.scene import load_scene
+
+    s = semantic_scene(tmp_path, n=3000, n_views=6, size=(48, 36))
+    scene = load_scene(s["scene"])
+    feats = import_features(scene, s["features"], ExtractOptions(tmp_path / "f.h5"))
+    cb = init_codebook(feats, CodebookOptions(tmp_path / "c.h5", entries=8))
+
+    def opts(out, **kw):
+        return FieldOptions(
+            tmp_path / out, iterations=60, checkpoint_every=20, cells_per_view=64, **kw
+        )
+
+    fit_field(scene, feats, cb, opts("a.h5"))
+    real = field_mod._losses
+    calls = {"n": 0}
+
+    def interrupted(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 47:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(field_mod, "_losses", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        fit_field(scene, feats, cb, opts("b.h5"))
+    monkeypatch.setattr(field_mod, "_losses", real)
+    assert not (tmp_path / "b.h5").exists() and (tmp_path / "b.h5.ckpt").exists()
+    with h5py.File(tmp_path / "b.h5.ckpt") as f:
+        assert f.attrs["iteration"] == 40
+    fit_field(scene, feats, cb, opts("b.h5", resume=True))
+    assert not (tmp_path / "b.h5.ckpt").exists()
+    a, b = load_field(tmp_path / "a.h5"), load_field(tmp_path / "b.h5")
+    np.testing.assert_array_equal(a.features, b.features)
+    np.testing.assert_array_equal(a.codebook, b.codebook)
+    # Resuming with other options is refused, naming the checkpoint.
+    from stages.errors import GoiError
+
+    calls["n"] = 0
+    monkeypatch.setattr(field_mod, "_losses", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        fit_field(scene, feats, cb, opts("d.h5"))
+    monkeypatch.setattr(field_mod, "_losses", real)
+    with pytest.raises(GoiError, match=r"d.h5.ckpt: checkpoint was made with other fit-field"):
+        fit_field(scene, feats, cb, opts("d.h5", resume=True, seed=5))
