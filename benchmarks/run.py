@@ -109,7 +109,100 @@ def suite_raster(repeat: int, tmp: Path) -> dict[str, float]:
     return out
 
 
-SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {"raster": suite_raster}
+DEV_ROOM = Path(__file__).resolve().parents[2] / "shared" / "dev-room"
+
+
+def _fit_pipeline(
+    scene_dir: Path, features_dir: Path, work: Path, entries: int = 300
+) -> dict[str, float]:
+    """extract (import) + init-codebook + fit-field with the paper's defaults; seconds each."""
+    from stages.codebook import CodebookOptions, init_codebook
+    from stages.extract import ExtractOptions, import_features
+    from stages.field import FieldOptions, fit_field
+    from stages.scene import load_scene
+
+    scene = load_scene(scene_dir)
+    times = {}
+    t = time.perf_counter()
+    feats = import_features(scene, features_dir, ExtractOptions(work / "features.h5", force=True))
+    times["extract"] = time.perf_counter() - t
+    t = time.perf_counter()
+    cb = init_codebook(feats, CodebookOptions(work / "codebook.h5", entries=entries, force=True))
+    times["codebook"] = time.perf_counter() - t
+    t = time.perf_counter()
+    fit_field(scene, feats, cb, FieldOptions(work / "field.h5", force=True, checkpoint_every=0))
+    times["field"] = time.perf_counter() - t
+    return times
+
+
+def _synthetic_features(
+    scene_dir: Path, out: Path, ids: np.ndarray, dim: int = 384, stride: int = 8, seed: int = 0
+) -> None:
+    """Per-object constant features plus noise, area-downsampled like a dense encoder's."""
+    import cv2
+
+    from stages.rasterizer import Rasterizer
+    from stages.scene import load_scene
+
+    scene = load_scene(scene_dir)
+    rng = np.random.default_rng(seed)
+    objects = rng.normal(size=(ids.max() + 1, dim)).astype(np.float32)
+    objects /= np.linalg.norm(objects, axis=1, keepdims=True)
+    onehot = np.eye(ids.max() + 1, dtype=np.float32)[ids]
+    rast = Rasterizer.from_gaussians(scene.gaussians)
+    out.mkdir(parents=True, exist_ok=True)
+    for cam in scene.views("train"):
+        share = rast.render_features(cam, onehot).image
+        h, w = cam.height // stride, cam.width // stride
+        small = cv2.resize(share, (w, h), interpolation=cv2.INTER_AREA) @ objects
+        small += rng.normal(0, 0.3 / np.sqrt(dim), small.shape).astype(np.float32)
+        np.save(out / f"{cam.name}.npy", small.transpose(2, 0, 1).astype(np.float16))
+
+
+def suite_field(repeat: int, tmp: Path) -> dict[str, float]:
+    """Heavy figures, each measured once (a median of one): a run takes minutes."""
+    from stages.codebook import spherical_kmeans
+    from stages.synthetic import ring_cameras
+    from tests.helpers import write_inria
+
+    out: dict[str, float] = {}
+    rng = np.random.default_rng(0)
+    centres = rng.normal(size=(300, 384)).astype(np.float32)
+    x = centres[rng.integers(0, 300, 1_000_000)] + rng.normal(0, 0.05, (1_000_000, 384)).astype(
+        np.float32
+    )
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    t = time.perf_counter()
+    spherical_kmeans(x, 300, 10, 0)
+    out["kmeans_s_1m_384_k300"] = time.perf_counter() - t
+    del x
+
+    if (DEV_ROOM / "features").is_dir():
+        work = tmp / "dev"
+        work.mkdir()
+        times = _fit_pipeline(DEV_ROOM, DEV_ROOM / "features", work)
+        out["fit_field_s_dev_room"] = times["field"]
+        out["init_codebook_s_dev_room"] = times["codebook"]
+    else:
+        print(f"note: {DEV_ROOM} is absent: fit_field_s_dev_room not measured", file=sys.stderr)
+
+    scene_dir = tmp / "syn300k"
+    scene_dir.mkdir()
+    v, ids = room_vertex(300_000, seed=0)
+    save_ply(scene_dir / "point_cloud.ply", v, force=True)
+    write_inria(scene_dir / "cameras.json", ring_cameras(50, 640, 480))
+    _synthetic_features(scene_dir, tmp / "syn300k_features", ids)
+    work = tmp / "syn300k_work"
+    work.mkdir()
+    times = _fit_pipeline(scene_dir, tmp / "syn300k_features", work)
+    out["fit_field_s_300k_50v_640x480"] = times["field"]
+    return out
+
+
+SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
+    "raster": suite_raster,
+    "field": suite_field,
+}
 
 
 def main() -> int:

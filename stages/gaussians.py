@@ -59,6 +59,25 @@ _PLY_SIZES = {
 }
 
 
+def vertex_fields(
+    sh_degree: int = 0, normals: bool = True, extra: tuple[str, ...] = ()
+) -> list[str]:
+    """The INRIA vertex fields, in INRIA's order, for an SH degree."""
+    rest = [f"f_rest_{i}" for i in range(3 * ((sh_degree + 1) ** 2 - 1))]
+    return [
+        "x",
+        "y",
+        "z",
+        *(["nx", "ny", "nz"] if normals else []),
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        *rest,
+        *REQUIRED[6:],
+        *extra,
+    ]
+
+
 @dataclass
 class Gaussians:
     path: Path

@@ -184,11 +184,8 @@ def _project_kernel(
         radius = math.ceil(3.0 * math.sqrt(max(mid + root, mid - root)))
         mx = fx * tx / tz + cx - 0.5
         my = fy * ty / tz + cy - 0.5
-        # INRIA's tile rectangle; a Gaussian touching no tile is culled.
-        rx0 = min(tiles_x, max(0, int((mx - radius) / TILE)))
-        ry0 = min(tiles_y, max(0, int((my - radius) / TILE)))
-        rx1 = min(tiles_x, max(0, int((mx + radius + TILE - 1) / TILE)))
-        ry1 = min(tiles_y, max(0, int((my + radius + TILE - 1) / TILE)))
+        # A Gaussian touching no tile is culled.
+        rx0, ry0, rx1, ry1 = _tile_rect(mx, my, radius, tiles_x, tiles_y)
         if (rx1 - rx0) * (ry1 - ry0) == 0:
             continue
         q = 2.0 * math.log(255.0 * opacities[i])
@@ -241,6 +238,16 @@ def project(means, quats, scales, opacities, valid, cam: Camera, near: float = N
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _tile_rect(mx, my, radius, tiles_x, tiles_y):
+    """INRIA's tile rectangle [x0, x1) x [y0, y1) of a Gaussian at (mx, my) with `radius`."""
+    x0 = min(tiles_x, max(0, int((mx - radius) / TILE)))
+    y0 = min(tiles_y, max(0, int((my - radius) / TILE)))
+    x1 = min(tiles_x, max(0, int((mx + radius + TILE - 1) / TILE)))
+    y1 = min(tiles_y, max(0, int((my + radius + TILE - 1) / TILE)))
+    return x0, y0, x1, y1
+
+
 @numba.njit(cache=True)
 def _bin_kernel(order, means2d, radii, tiles_x, tiles_y):
     n_tiles = tiles_x * tiles_y
@@ -249,11 +256,7 @@ def _bin_kernel(order, means2d, radii, tiles_x, tiles_y):
         r = radii[g]
         if r == 0:
             continue
-        mx, my = means2d[g, 0], means2d[g, 1]
-        x0 = min(tiles_x, max(0, int((mx - r) / TILE)))
-        y0 = min(tiles_y, max(0, int((my - r) / TILE)))
-        x1 = min(tiles_x, max(0, int((mx + r + TILE - 1) / TILE)))
-        y1 = min(tiles_y, max(0, int((my + r + TILE - 1) / TILE)))
+        x0, y0, x1, y1 = _tile_rect(means2d[g, 0], means2d[g, 1], r, tiles_x, tiles_y)
         for ty in range(y0, y1):
             for tx in range(x0, x1):
                 counts[ty * tiles_x + tx + 1] += 1
@@ -264,11 +267,7 @@ def _bin_kernel(order, means2d, radii, tiles_x, tiles_y):
         r = radii[g]
         if r == 0:
             continue
-        mx, my = means2d[g, 0], means2d[g, 1]
-        x0 = min(tiles_x, max(0, int((mx - r) / TILE)))
-        y0 = min(tiles_y, max(0, int((my - r) / TILE)))
-        x1 = min(tiles_x, max(0, int((mx + r + TILE - 1) / TILE)))
-        y1 = min(tiles_y, max(0, int((my + r + TILE - 1) / TILE)))
+        x0, y0, x1, y1 = _tile_rect(means2d[g, 0], means2d[g, 1], r, tiles_x, tiles_y)
         for ty in range(y0, y1):
             for tx in range(x0, x1):
                 ids[cursor[ty * tiles_x + tx]] = g

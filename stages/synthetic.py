@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from stages.cameras import Camera
-from stages.gaussians import REQUIRED
+from stages.gaussians import vertex_fields
 
 
 def look_at(
@@ -86,20 +86,7 @@ def room_vertex(
     rgb = palette[ids] + rng.normal(0, 0.03, (n, 3))
     spacing = math.sqrt(90.0 / n)  # about the distance between neighbours on the surfaces
     k_rest = 3 * ((sh_degree + 1) ** 2 - 1)
-    names = [
-        "x",
-        "y",
-        "z",
-        "nx",
-        "ny",
-        "nz",
-        "f_dc_0",
-        "f_dc_1",
-        "f_dc_2",
-        *[f"f_rest_{i}" for i in range(k_rest)],
-        *REQUIRED[6:],
-    ]
-    v = np.zeros(n, dtype=[(nm, "<f4") for nm in names])
+    v = np.zeros(n, dtype=[(nm, "<f4") for nm in vertex_fields(sh_degree)])
     v["x"], v["y"], v["z"] = means.T
     for c in range(3):
         v[f"f_dc_{c}"] = (rgb[:, c] - 0.5) / 0.28209479177387814

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.cameras import GL_TO_CV, Camera
-from stages.gaussians import REQUIRED, save_ply
+from stages.gaussians import save_ply, vertex_fields
 from stages.synthetic import look_at
 
 DEV_ROOM = Path(__file__).resolve().parents[1].parent / "shared" / "dev-room"
@@ -26,19 +26,7 @@ def random_vertex(
     """A random INRIA vertex table of `n` Gaussians in front of `front_camera()`."""
     rng = np.random.default_rng(seed)
     k_rest = 3 * ((degree + 1) ** 2 - 1)
-    names = [
-        "x",
-        "y",
-        "z",
-        *(["nx", "ny", "nz"] if normals else []),
-        "f_dc_0",
-        "f_dc_1",
-        "f_dc_2",
-        *[f"f_rest_{i}" for i in range(k_rest)],
-        *REQUIRED[6:],
-        *extra,
-    ]
-    v = np.zeros(n, dtype=[(nm, "<f4") for nm in names])
+    v = np.zeros(n, dtype=[(nm, "<f4") for nm in vertex_fields(degree, normals, extra)])
     v["x"] = rng.uniform(-spread, spread, n)
     v["y"] = rng.uniform(-spread, spread, n)
     v["z"] = rng.uniform(-0.5, 0.5, n)
