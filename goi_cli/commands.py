@@ -18,24 +18,37 @@ EXISTING = click.Path(exists=True, dir_okay=False, path_type=Path)
 @click.command("extract")
 @scene_options
 @click.option(
+    "--bundle",
+    type=click.Path(path_type=Path),
+    help="Model bundle directory (manifest.json + ONNX image encoder, see docs/models.md): "
+    "encode the training images with it.",
+)
+@click.option(
     "--from",
     "source",
     type=click.Path(path_type=Path),
-    required=True,
     help="Directory of precomputed per-image features: <view>.npy [D, h, w] or the "
     "authors' APE <view>.pt (float16 [D, H, W]).",
 )
 @dataclass_options(ExtractOptions)
-def extract_cmd(source: Path, **kw) -> None:
+def extract_cmd(source: Path | None, bundle: Path | None, **kw) -> None:
     """Write the features artifact of the scene's training views.
 
-    Feature maps are imported from --from DIR, checked (shape, dimension, NaN) and stored as
-    float16 [h, w, D]. An interrupted run resumes from <out>.partial.
+    Give one of --bundle DIR (run its ONNX image encoder on the images) or --from DIR (import
+    precomputed maps). Maps are checked (shape, dimension, NaN) and stored as float16
+    [h, w, D]. An interrupted run resumes from <out>.partial.
     """
-    from stages.extract import import_features
+    from stages.extract import encode_views, import_features
 
+    if (source is None) == (bundle is None):
+        raise click.UsageError("give exactly one of --bundle DIR or --from DIR")
     scene = load_scene_from(kw)
-    out = import_features(scene, source, build(ExtractOptions, kw))
+    opts = build(ExtractOptions, kw)
+    if bundle is not None:
+        out = encode_views(scene, bundle, opts)
+    else:
+        assert source is not None
+        out = import_features(scene, source, opts)
     click.echo(f"features: {out}")
 
 

@@ -40,10 +40,13 @@ def definition(schema: str) -> dict[str, Any]:
 
 
 def known_schemas() -> list[str]:
+    """The HDF5 artifact schemas (JSON documents such as bundle manifests are not among them)."""
     return sorted(
         p.name[: -len(".json")]
         for p in resources.files("schemas").iterdir()
-        if p.name.startswith("goi.") and p.name.endswith(".json")
+        if p.name.startswith("goi.")
+        and p.name.endswith(".json")
+        and json.loads(p.read_text()).get("kind", "hdf5") == "hdf5"
     )
 
 
@@ -197,3 +200,46 @@ def validate_file(
         more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
         raise GoiError(f"{p}: {errors[0]}{more}")
     return schema, errors
+
+
+_JSON_TYPES: dict[str, type | tuple[type, ...]] = {
+    "str": str,
+    "int": int,
+    "list": list,
+    "object": dict,
+    "float": (int, float),
+}
+
+
+def validate_json(obj: Any, schema: str, where: str) -> None:
+    """Check a JSON document (e.g. a bundle manifest) against its definition; raise GoiError
+    naming the file and the field."""
+    d = definition(schema)
+    if not isinstance(obj, dict):
+        raise GoiError(f"{where}: expected a JSON object")
+    if obj.get("schema") != schema:
+        raise GoiError(f"{where}: field 'schema' should be {schema!r}, found {obj.get('schema')!r}")
+    version = str(obj.get("schema_version", ""))
+    if _major(version) != _major(d["version"]):
+        raise GoiError(
+            f"{where}: {schema} version {version or '?'} is not readable by goi's "
+            f"{d['version']}: upgrade goi or re-create the file"
+        )
+    _check_fields(obj, d["fields"], where, "")
+
+
+def _check_fields(obj: dict, spec: dict, where: str, prefix: str) -> None:
+    for name, f in spec.items():
+        key = f"{prefix}{name}"
+        if name not in obj:
+            if not f.get("optional"):
+                raise GoiError(f"{where}: field '{key}' is missing")
+            continue
+        value = obj[name]
+        kind = _JSON_TYPES[f["type"]]
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise GoiError(
+                f"{where}: field '{key}' should be {f['type']}, found {type(value).__name__}"
+            )
+        if isinstance(value, dict):
+            _check_fields(value, f.get("fields", {}), where, key + ".")

@@ -1,4 +1,4 @@
-"""`goi extract`: the features artifact, from per-image feature files.
+"""`goi extract`: the features artifact, from an ONNX image encoder or imported files.
 
 Views are written one by one into `<out>.partial`; an interrupted run resumes there (views
 already done are skipped) and the finished file is renamed to `<out>` only at the end.
@@ -220,3 +220,22 @@ def _dir_digest(paths: list[Path]) -> str:
     if paths:
         h.update(sha256_file(sorted(paths)[0]).encode())
     return h.hexdigest()
+
+
+def encode_views(scene: Scene, bundle_dir: Path, opts: ExtractOptions) -> Path:
+    """Write the features artifact by running a bundle's image encoder on the images."""
+    from stages.bundle import load_bundle
+
+    bundle = load_bundle(bundle_dir)
+    names = [c.name for c in scene.views(opts.split)]
+    for n in names:  # fail before any work on a missing or mis-sized image
+        scene.image_path(scene.camera(n))
+    inputs = {"cameras": scene.cameras_digest(), "bundle": bundle.digest()}
+
+    def make(name: str) -> np.ndarray:
+        chw = bundle.encode_image(scene.load_image(scene.camera(name)))
+        if not np.isfinite(chw).all():
+            raise GoiError(f"{bundle_dir}: image encoder returned NaN/inf for view '{name}'")
+        return resample(chw, opts.max_side)
+
+    return _write_views(opts, scene, names, f"bundle:{bundle.name}", inputs, make)
