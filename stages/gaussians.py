@@ -64,18 +64,8 @@ def vertex_fields(
 ) -> list[str]:
     """The INRIA vertex fields, in INRIA's order, for an SH degree."""
     rest = [f"f_rest_{i}" for i in range(3 * ((sh_degree + 1) ** 2 - 1))]
-    return [
-        "x",
-        "y",
-        "z",
-        *(["nx", "ny", "nz"] if normals else []),
-        "f_dc_0",
-        "f_dc_1",
-        "f_dc_2",
-        *rest,
-        *REQUIRED[6:],
-        *extra,
-    ]
+    normal = ["nx", "ny", "nz"] if normals else []
+    return [*REQUIRED[:3], *normal, *REQUIRED[3:6], *rest, *REQUIRED[6:], *extra]
 
 
 @dataclass
