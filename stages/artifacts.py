@@ -108,14 +108,19 @@ def write_h5(
     force: bool = False,
 ) -> Iterator[h5py.File]:
     """Create an HDF5 artifact atomically, stamped with its schema, version and provenance."""
+    with atomic_path(path, force) as tmp, h5py.File(tmp, "w", track_order=True) as f:
+        stamp(f, schema, inputs)
+        yield f
+
+
+def stamp(f: h5py.File, schema: str, inputs: dict[str, str]) -> None:
+    """Write the root attributes every artifact carries: schema, version, provenance."""
     from schemas import current_version
 
-    with atomic_path(path, force) as tmp, h5py.File(tmp, "w", track_order=True) as f:
-        f.attrs["schema"] = schema
-        f.attrs["schema_version"] = current_version(schema)
-        for k, v in provenance(inputs).items():
-            f.attrs[k] = v
-        yield f
+    f.attrs["schema"] = schema
+    f.attrs["schema_version"] = current_version(schema)
+    for k, v in provenance(inputs).items():
+        f.attrs[k] = v
 
 
 def put(group: h5py.Group, name: str, data: Any, compress: bool = False) -> h5py.Dataset:

@@ -9,16 +9,17 @@ registered, and manifest paths may not leave the bundle directory.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from schemas import validate_json
+from stages.artifacts import sha256_files
 from stages.errors import GoiError
 
 MANIFEST = "manifest.json"
@@ -85,29 +86,45 @@ class Bundle:
         return int(self.manifest["feature_dim"])
 
     def digest(self) -> str:
-        h = hashlib.sha256()
-        for p in sorted(self.root.rglob("*")):
-            if p.is_file():
-                h.update(p.name.encode())
-                h.update(hashlib.sha256(p.read_bytes()).digest())
-        return h.hexdigest()
+        return sha256_files([p for p in self.root.rglob("*") if p.is_file()])
 
-    def _image_session(self):  # noqa: ANN202
-        if not hasattr(self, "_img"):
-            spec = self.manifest["image_encoder"]
-            path = _inside(self.root, spec["file"], str(self.root / MANIFEST))
-            sess = _session(path)
-            _check_io(sess, path, "input", spec["input"], 4, {1: 3})
-            _check_io(sess, path, "output", spec["output"], 4, {1: self.dim})
-            self._img = sess
-        return self._img
+    @cached_property
+    def _image_session(self) -> Any:
+        spec = self.manifest["image_encoder"]
+        path = _inside(self.root, spec["file"], str(self.root / MANIFEST))
+        sess = _session(path)
+        _check_io(sess, path, "input", spec["input"], 4, {1: 3})
+        _check_io(sess, path, "output", spec["output"], 4, {1: self.dim})
+        return sess
+
+    @cached_property
+    def _text(self) -> tuple[Any, Any]:
+        """The tokenizer and the checked text-encoder session."""
+        spec = self.manifest["text_encoder"]
+        where = str(self.root / MANIFEST)
+        tok_spec = spec["tokenizer"]
+        if tok_spec["kind"] != "huggingface":
+            raise GoiError(
+                f"{where}: tokenizer kind {tok_spec['kind']!r} is not supported (huggingface)"
+            )
+        from tokenizers import Tokenizer
+
+        tok = Tokenizer.from_file(str(_inside(self.root, tok_spec["file"], where)))
+        tok.enable_truncation(int(tok_spec["max_length"]))
+        path = _inside(self.root, spec["file"], where)
+        sess = _session(path)
+        _check_io(sess, path, "input", spec["input_ids"], 2, {0: 1})
+        if spec.get("attention_mask"):
+            _check_io(sess, path, "input", spec["attention_mask"], 2, {0: 1})
+        _check_io(sess, path, "output", spec["output"], 2, {1: self.dim})
+        return tok, sess
 
     def encode_image(self, rgb: np.ndarray) -> np.ndarray:
         """[H, W, 3] uint8 RGB -> dense features [D, h, w] float32."""
         import cv2
 
         spec = self.manifest["image_encoder"]
-        sess = self._image_session()
+        sess = self._image_session
         img = rgb if spec["channel_order"].upper() == "RGB" else rgb[:, :, ::-1]
         if spec.get("size"):
             w, h = (int(v) for v in spec["size"])
@@ -132,25 +149,7 @@ class Bundle:
                 f"{self.root / MANIFEST}: this bundle has no text encoder; pass "
                 "--text-embeddings FILE"
             )
-        if not hasattr(self, "_txt"):
-            where = str(self.root / MANIFEST)
-            tok_spec = spec["tokenizer"]
-            if tok_spec["kind"] != "huggingface":
-                raise GoiError(
-                    f"{where}: tokenizer kind {tok_spec['kind']!r} is not supported (huggingface)"
-                )
-            from tokenizers import Tokenizer
-
-            tok = Tokenizer.from_file(str(_inside(self.root, tok_spec["file"], where)))
-            tok.enable_truncation(int(tok_spec["max_length"]))
-            path = _inside(self.root, spec["file"], where)
-            sess = _session(path)
-            _check_io(sess, path, "input", spec["input_ids"], 2, {0: 1})
-            if spec.get("attention_mask"):
-                _check_io(sess, path, "input", spec["attention_mask"], 2, {0: 1})
-            _check_io(sess, path, "output", spec["output"], 2, {1: self.dim})
-            self._txt = (tok, sess)
-        tok, sess = self._txt
+        tok, sess = self._text
         enc = tok.encode(text)
         feed = {spec["input_ids"]: np.asarray([enc.ids], np.int64)}
         if spec.get("attention_mask"):

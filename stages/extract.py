@@ -18,7 +18,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from stages.artifacts import check_writable, provenance, put, sha256_file
+from stages.artifacts import check_writable, put, sha256_file, stamp
 from stages.errors import GoiError
 from stages.features import SCHEMA
 from stages.progress import progress
@@ -124,14 +124,8 @@ def _write_views(
     dim = None
     with h5py.File(partial, mode, track_order=True) as f:
         if mode == "w":
-            f.attrs.update(
-                {
-                    "schema": SCHEMA,
-                    "schema_version": _version(),
-                    **provenance(inputs),
-                    "source": source,
-                }
-            )
+            stamp(f, SCHEMA, inputs)
+            f.attrs["source"] = source
             f.create_group("views", track_order=True)
         views = f["views"]
         for v in [n for n in names if n in views]:
@@ -155,17 +149,11 @@ def _write_views(
             f.flush()
         if "dim" not in f.attrs:
             raise GoiError("no views to extract")
-        f.attrs["created"] = provenance(inputs)["created"]
+        stamp(f, SCHEMA, inputs)  # `created` becomes the time the last view was written
     with open(partial, "rb+") as fh:
         os.fsync(fh.fileno())
     os.replace(partial, out)
     return out
-
-
-def _version() -> str:
-    from schemas import current_version
-
-    return current_version(SCHEMA)
 
 
 def import_features(scene: Scene, src: Path, opts: ExtractOptions) -> Path:

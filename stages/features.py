@@ -9,7 +9,6 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from stages.artifacts import open_h5
@@ -20,10 +19,8 @@ SCHEMA = "goi.features"
 
 @dataclass
 class FeatureMaps:
-    path: Path
     dim: int
     maps: dict[str, np.ndarray]  # view -> [h, w, D] float32, unit norm (zero cells stay zero)
-    image_sizes: dict[str, tuple[int, int]]  # view -> (width, height)
 
     @property
     def views(self) -> list[str]:
@@ -46,17 +43,10 @@ def load_features(path: str | os.PathLike[str], views: list[str] | None = None) 
                 f"{p}: no features for view(s) {', '.join(missing[:5])}"
                 f"{' ...' if len(missing) > 5 else ''}; re-run goi extract"
             )
-        maps, sizes = {}, {}
+        maps = {}
         for v in names:
-            g = f["views"][v]
-            m = g["features"][()].astype(np.float32)
+            m = f["views"][v]["features"][()].astype(np.float32)
             if not np.isfinite(m).all():
                 raise GoiError(f"{p}: features of view '{v}' contain NaN/inf")
             maps[v] = normalise(m)
-            sizes[v] = (int(g.attrs["image_width"]), int(g.attrs["image_height"]))
-    return FeatureMaps(p, dim, maps, sizes)
-
-
-def feature_dim(path: str | os.PathLike[str]) -> int:
-    with h5py.File(path, "r") as f:
-        return int(f.attrs["dim"])
+    return FeatureMaps(dim, maps)

@@ -31,7 +31,6 @@ from stages.scene import Scene
 
 SCHEMA = "goi.field"
 CHECKPOINT = "goi.field_checkpoint"
-LOSSES = ("total", "ent", "max", "joint", "e2e")
 
 
 @dataclass
