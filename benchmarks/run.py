@@ -199,9 +199,67 @@ def suite_field(repeat: int, tmp: Path) -> dict[str, float]:
     return out
 
 
+def suite_query(repeat: int, tmp: Path) -> dict[str, float]:
+    """A prompt on the 300k room at 640x480. The field is random, not fitted: a query's cost
+    does not depend on the values (one render, a decoder product, a lookup), and fitting a
+    300k field takes minutes. The RES mask is a disc on one training view."""
+    import cv2
+
+    from stages.cameras import Camera
+    from stages.field import Field
+    from stages.hyperplane import HyperplaneOptions, ResFiles, fit_hyperplane
+    from stages.masks import MaskOptions, render_masks
+    from stages.semantic_render import SemanticRenderer
+
+    rng = np.random.default_rng(0)
+    g = synthetic_scene(300_000, tmp)
+    n, d, s = 300, 384, 10
+    codebook = rng.normal(size=(n, d)).astype(np.float32)
+    field = Field(
+        rng.normal(size=(len(g.vertex), s)).astype(np.float32),
+        rng.normal(size=(n, s)).astype(np.float32),
+        rng.normal(size=n).astype(np.float32),
+        codebook,
+    )
+    field_path = tmp / "field.npy"
+    np.save(field_path, field.features)  # the plane cache hashes a field-sized file
+    train = ring_cameras(8, 640, 480)
+    novel: Camera = ring_cameras(7, 640, 480, radius=2.2)[3]
+    res = tmp / "res"
+    res.mkdir(exist_ok=True)
+    disc = np.zeros((480, 640), np.uint8)
+    cv2.circle(disc, (320, 240), 90, 255, -1)
+    cv2.imwrite(str(res / f"{train[0].name}.png"), disc)
+    text = codebook[7] / np.linalg.norm(codebook[7])
+    renderer = SemanticRenderer(g, field)
+    out: dict[str, float] = {}
+
+    def plane(refit: bool):  # noqa: ANN202
+        o = HyperplaneOptions(out=tmp / "planes.h5", refit=refit)
+        return fit_hyperplane(
+            renderer, field_path, train, "p", text, "bench", ResFiles(res, None, "p"), o
+        )[0]
+
+    def mask(p, overlay: bool) -> None:  # noqa: ANN001
+        o = MaskOptions(out=tmp / "masks", no_overlay=not overlay, force=True)
+        render_masks(renderer, p, [novel], o)
+
+    p = plane(True)
+    out["rgb_render_s_640x480_300k"] = median_s(lambda: renderer.rast.render_rgb(novel), repeat)
+    out["render_mask_s_640x480_300k"] = median_s(lambda: mask(p, False), repeat)
+    out["render_mask_overlay_s_640x480_300k"] = median_s(lambda: mask(p, True), repeat)
+    out["new_prompt_s_640x480_300k"] = median_s(lambda: mask(plane(True), False), repeat)
+    out["cached_prompt_s_640x480_300k"] = median_s(lambda: mask(plane(False), False), repeat)
+    out["cached_prompt_over_rgb_render"] = (
+        out["cached_prompt_s_640x480_300k"] / out["rgb_render_s_640x480_300k"]
+    )
+    return out
+
+
 SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "raster": suite_raster,
     "field": suite_field,
+    "query": suite_query,
 }
 
 

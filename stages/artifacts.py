@@ -73,6 +73,12 @@ def check_writable(path: Path, force: bool) -> None:
         raise GoiError(f"{path}: directory {parent} is not writable")
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str], force: bool = False) -> Iterator[Path]:
     """Yield a temporary path; on success it is fsynced and renamed to `path`, else removed."""
@@ -82,6 +88,7 @@ def atomic_path(path: str | os.PathLike[str], force: bool = False) -> Iterator[P
     os.close(fd)
     tmp = Path(tmp_name)
     try:
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private; use the user's umask
         yield tmp
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
@@ -143,6 +150,18 @@ def open_h5(path: str | os.PathLike[str], schema: str) -> h5py.File:
 def write_json(path: str | os.PathLike[str], obj: Any, force: bool = False) -> None:
     with atomic_path(path, force) as tmp:
         tmp.write_text(json.dumps(obj, indent=1, sort_keys=False) + "\n")
+
+
+def write_png(path: str | os.PathLike[str], image: np.ndarray, force: bool = False) -> None:
+    """An image ([H, W] grey or [H, W, 3] RGB, uint8) as a PNG, atomically."""
+    import cv2
+
+    img = image if image.ndim == 2 else np.ascontiguousarray(image[:, :, ::-1])
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise GoiError(f"{path}: could not encode PNG")
+    with atomic_path(path, force) as tmp:
+        tmp.write_bytes(buf.tobytes())
 
 
 def input_digest(label: str, path: str | os.PathLike[str]) -> dict[str, str]:

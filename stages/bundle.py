@@ -72,6 +72,20 @@ def _check_io(
             )
 
 
+def _prepare(spec: dict, rgb: np.ndarray) -> np.ndarray:
+    """[H, W, 3] uint8 RGB -> the model input [1, 3, H', W'] as the spec says."""
+    import cv2
+
+    img = rgb if spec["channel_order"].upper() == "RGB" else rgb[:, :, ::-1]
+    if spec.get("size"):
+        w, h = (int(v) for v in spec["size"])
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+    x = (img.astype(np.float32) / 255.0 - np.asarray(spec["mean"], np.float32)) / np.asarray(
+        spec["std"], np.float32
+    )
+    return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
+
+
 @dataclass
 class Bundle:
     root: Path
@@ -90,7 +104,7 @@ class Bundle:
 
     @cached_property
     def _image_session(self) -> Any:
-        spec = self.manifest["image_encoder"]
+        spec = self._spec("image_encoder", "needed to encode images")
         path = _inside(self.root, spec["file"], str(self.root / MANIFEST))
         sess = _session(path)
         _check_io(sess, path, "input", spec["input"], 4, {1: 3})
@@ -100,7 +114,7 @@ class Bundle:
     @cached_property
     def _text(self) -> tuple[Any, Any]:
         """The tokenizer and the checked text-encoder session."""
-        spec = self.manifest["text_encoder"]
+        spec = self._spec("text_encoder", "its tokenizer is needed for prompts")
         where = str(self.root / MANIFEST)
         tok_spec = spec["tokenizer"]
         if tok_spec["kind"] != "huggingface":
@@ -119,21 +133,16 @@ class Bundle:
         _check_io(sess, path, "output", spec["output"], 2, {1: self.dim})
         return tok, sess
 
+    def _spec(self, key: str, what: str) -> dict:
+        spec = self.manifest.get(key)
+        if spec is None:
+            raise GoiError(f"{self.root / MANIFEST}: this bundle has no {key} ({what})")
+        return spec
+
     def encode_image(self, rgb: np.ndarray) -> np.ndarray:
         """[H, W, 3] uint8 RGB -> dense features [D, h, w] float32."""
-        import cv2
-
-        spec = self.manifest["image_encoder"]
-        sess = self._image_session
-        img = rgb if spec["channel_order"].upper() == "RGB" else rgb[:, :, ::-1]
-        if spec.get("size"):
-            w, h = (int(v) for v in spec["size"])
-            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-        x = (img.astype(np.float32) / 255.0 - np.asarray(spec["mean"], np.float32)) / np.asarray(
-            spec["std"], np.float32
-        )
-        x = np.ascontiguousarray(x.transpose(2, 0, 1)[None])
-        out = sess.run([spec["output"]], {spec["input"]: x})[0]
+        spec = self._spec("image_encoder", "needed to encode images")
+        out = self._image_session.run([spec["output"]], {spec["input"]: _prepare(spec, rgb)})[0]
         if out.ndim != 4 or out.shape[0] != 1 or out.shape[1] != self.dim:
             raise GoiError(
                 f"{self.root}: image encoder returned {list(out.shape)}, expected "
@@ -141,14 +150,43 @@ class Bundle:
             )
         return out[0].astype(np.float32)
 
+    @cached_property
+    def _res_session(self) -> Any:
+        spec = self.manifest["res"]
+        path = _inside(self.root, spec["file"], str(self.root / MANIFEST))
+        sess = _session(path)
+        _check_io(sess, path, "input", spec["image_input"], 4, {1: 3})
+        _check_io(sess, path, "input", spec["input_ids"], 2, {0: 1})
+        if spec.get("attention_mask"):
+            _check_io(sess, path, "input", spec["attention_mask"], 2, {0: 1})
+        _check_io(sess, path, "output", spec["output"], 4, {1: 1})
+        return sess
+
+    @property
+    def has_res(self) -> bool:
+        return "res" in self.manifest
+
+    def segment(self, rgb: np.ndarray, text: str) -> np.ndarray:
+        """The RES mask of a prompt on an image: [H, W] uint8 RGB -> [H, W] bool."""
+        import cv2
+
+        spec = self._spec("res", "a referring-segmentation model; pass --res-masks DIR")
+        tok, _ = self._text
+        enc = tok.encode(text)
+        feed = {
+            spec["image_input"]: _prepare(spec, rgb),
+            spec["input_ids"]: np.asarray([enc.ids], np.int64),
+        }
+        if spec.get("attention_mask"):
+            feed[spec["attention_mask"]] = np.asarray([enc.attention_mask], np.int64)
+        score = self._res_session.run([spec["output"]], feed)[0][0, 0].astype(np.float32)
+        h, w = rgb.shape[:2]
+        score = cv2.resize(score, (w, h), interpolation=cv2.INTER_LINEAR)
+        return score > float(spec["threshold"])
+
     def encode_text(self, text: str) -> np.ndarray:
         """A prompt -> its unit embedding [D]."""
-        spec = self.manifest.get("text_encoder")
-        if spec is None:
-            raise GoiError(
-                f"{self.root / MANIFEST}: this bundle has no text encoder; pass "
-                "--text-embeddings FILE"
-            )
+        spec = self._spec("text_encoder", "pass --text-embeddings FILE instead")
         tok, sess = self._text
         enc = tok.encode(text)
         feed = {spec["input_ids"]: np.asarray([enc.ids], np.int64)}
@@ -168,10 +206,17 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise GoiError(f"{mf}: not valid JSON ({e})") from None
     validate_json(manifest, "goi.bundle", str(mf))
-    spec = manifest["image_encoder"]
-    for key in ("mean", "std"):
-        if len(spec[key]) != 3:
-            raise GoiError(f"{mf}: field 'image_encoder.{key}' needs 3 numbers")
-    if spec["channel_order"].upper() not in ("RGB", "BGR"):
-        raise GoiError(f"{mf}: field 'image_encoder.channel_order' must be RGB or BGR")
+    if "image_encoder" not in manifest and "text_encoder" not in manifest:
+        raise GoiError(f"{mf}: needs at least one of 'image_encoder' and 'text_encoder'")
+    if "res" in manifest and "text_encoder" not in manifest:
+        raise GoiError(f"{mf}: 'res' uses the text encoder's tokenizer; add 'text_encoder'")
+    for key in ("image_encoder", "res"):
+        spec = manifest.get(key)
+        if spec is None:
+            continue
+        for stat in ("mean", "std"):
+            if len(spec[stat]) != 3:
+                raise GoiError(f"{mf}: field '{key}.{stat}' needs 3 numbers")
+        if spec["channel_order"].upper() not in ("RGB", "BGR"):
+            raise GoiError(f"{mf}: field '{key}.channel_order' must be RGB or BGR")
     return Bundle(root, manifest)

@@ -581,6 +581,13 @@ class Rasterizer:
         colors = sh_to_rgb(self.sh, self.means, cam.center)
         return render(proj, bins, colors, cam.width, cam.height, np.asarray(background))
 
+    def contribution(self, cam: Camera) -> np.ndarray:
+        """[N] float64: each Gaussian's blending weight summed over the view's pixels (how much
+        of the image it makes; 0 for Gaussians the view does not see)."""
+        proj, bins = self.prepare(cam)
+        _, ids, w = blend_weights(proj, bins, cam.width, cam.height)
+        return np.bincount(ids, weights=w, minlength=self.means.shape[0])
+
     def render_features(self, cam: Camera, features: np.ndarray) -> Rendered:
         if self.backend == "gsplat":
             from stages.gpu import render_gsplat

@@ -53,11 +53,20 @@ class Scene:
             raise GoiError(f"--split: unknown split {split!r} (train, test or all)")
         return [self.camera(n) for n in names[split]]
 
-    def ply_digest(self) -> str:
+    @cached_property
+    def _ply_sha(self) -> str:
         return sha256_file(self.ply_path)
 
-    def cameras_digest(self) -> str:
+    def ply_digest(self) -> str:
+        """SHA-256 of the PLY, hashed once per Scene (several artifacts record it)."""
+        return self._ply_sha
+
+    @cached_property
+    def _cameras_sha(self) -> str:
         return sha256_files(self.camera_files)
+
+    def cameras_digest(self) -> str:
+        return self._cameras_sha
 
     def image_path(self, cam: Camera) -> Path:
         roots = [self.images_dir] if self.images_dir else []
@@ -105,6 +114,20 @@ def read_rgb(path: Path, width: int | None = None, height: int | None = None) ->
             f"{path}: image is {img.shape[1]}x{img.shape[0]} but its camera says {width}x{height}"
         )
     return img
+
+
+def read_mask(path: Path) -> np.ndarray:
+    """A binary mask image (any bit depth, grey or colour) -> [H, W] bool, non-zero = in."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise GoiError(f"{path}: cannot read mask image")
+    if img.ndim == 3:
+        img = img[:, :, :3].max(axis=2)
+    # 0/255 (or 0/65535) masks split at half range; 0/1 masks at zero
+    half = np.iinfo(img.dtype).max // 2 if img.dtype.kind in "ui" and img.max() > 1 else 0
+    return np.asarray(img > half)
 
 
 def _preview(names: list[str], n: int = 5) -> str:

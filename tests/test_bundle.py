@@ -178,3 +178,53 @@ def test_extract_with_a_bundle(tmp_path, capsys):
     assert "v1.png: image is 48x20 but its camera says 48x40" in err
     assert not (tmp_path / "g.h5").exists()
     assert main(["extract", "--scene", str(d), "--out", str(tmp_path / "h.h5")]) == 2
+
+
+class Res(torch.nn.Module):
+    """A tiny referring-segmentation model: image + prompt -> scores [1, 1, H/2, W/2]."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = torch.nn.Conv2d(3, 4, 2, stride=2)
+        self.emb = torch.nn.Embedding(len(VOCAB), 4)
+
+    def forward(self, image, input_ids):
+        return (self.conv(image) * self.emb(input_ids).mean(1)[:, :, None, None]).sum(1, True)
+
+
+def test_res_model_gives_the_thresholded_mask(tmp_path):
+    root, _, _, manifest = make_bundle(tmp_path / "b")
+    torch.manual_seed(1)
+    res = Res().eval()
+    _export(
+        res,
+        (torch.randn(1, 3, 32, 32), torch.zeros(1, 2, dtype=torch.int64)),
+        root / "res.onnx",
+        ["image", "input_ids"],
+        ["scores"],
+        {"image": {2: "h", 3: "w"}, "input_ids": {1: "n"}},
+    )
+    manifest["res"] = {
+        "file": "res.onnx",
+        "image_input": "image",
+        "input_ids": "input_ids",
+        "output": "scores",
+        "mean": [0.5, 0.5, 0.5],
+        "std": [0.25, 0.25, 0.25],
+        "channel_order": "RGB",
+        "threshold": 0.0,
+    }
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    b = load_bundle(root)
+    rgb = np.random.default_rng(3).integers(0, 256, (40, 48, 3), dtype=np.uint8)
+    mask = b.segment(rgb, "red sofa")
+    x = torch.from_numpy((rgb / 255.0 - 0.5) / 0.25).float().permute(2, 0, 1)[None]
+    with torch.no_grad():
+        score = res(x, torch.tensor([[1, 5]]))[0, 0].numpy()
+    want = cv2.resize(score, (48, 40), interpolation=cv2.INTER_LINEAR) > 0
+    assert mask.shape == (40, 48) and 0.05 < mask.mean() < 0.95
+    assert (mask != want).mean() < 0.01  # float32 rounding at the threshold only
+    del manifest["text_encoder"]
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(GoiError, match="'res' uses the text encoder"):
+        load_bundle(root)

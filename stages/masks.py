@@ -1,0 +1,95 @@
+"""`goi render-mask`: a prompt's binary mask and an overlay at any camera.
+
+hyperplane mode decides per pixel with the fitted plane (W' x + b' > 0); threshold mode with the
+fixed cosine threshold on the prompt's embedding (the baseline). Both are lookups of the pixel's
+decoded codebook entry, so a mask costs one render of the field (and the RGB rides along).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stages.artifacts import write_png
+from stages.cameras import Camera
+from stages.errors import GoiError
+from stages.hyperplane import THRESHOLD, Hyperplane, threshold_plane
+from stages.progress import progress
+from stages.prompts import view_file_name
+from stages.semantic_render import DecodedView, SemanticRenderer
+
+MODES = ("hyperplane", "threshold")
+HIGHLIGHT = np.array([1.0, 0.15, 0.1], np.float32)
+
+
+@dataclass
+class MaskOptions:
+    out: Path
+    """Directory for <view>.png (0/255 mask) and <view>.overlay.png."""
+    mode: str = "hyperplane"
+    """hyperplane: the fitted OSH; threshold: the fixed cosine threshold (the baseline)."""
+    threshold: float = THRESHOLD
+    """Cosine threshold of threshold mode."""
+    views: str | None = None
+    """Comma-separated views to render (default: the test split, else every camera)."""
+    no_overlay: bool = False
+    """Write only the masks, not the overlays on the rendered RGB."""
+    force: bool = False
+    """Overwrite existing mask files."""
+
+
+def plane_for(plane: Hyperplane, mode: str, field, threshold: float) -> Hyperplane:  # noqa: ANN001
+    if mode not in MODES:
+        raise GoiError(f"--mode: {mode!r} is not one of {', '.join(MODES)}")
+    if mode == "threshold":
+        return threshold_plane(plane.prompt, plane.text, field, threshold)
+    return plane
+
+
+def mask_of(plane: Hyperplane, view: DecodedView) -> np.ndarray:
+    """[H, W] bool: covered pixels whose decoded entry is on the positive side."""
+    return plane.positive[view.index] & view.covered
+
+
+def overlay(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The rendered RGB with the mask tinted and outlined: [H, W, 3] uint8."""
+    import cv2
+
+    out = rgb.copy()
+    out[mask] = 0.45 * out[mask] + 0.55 * HIGHLIGHT
+    img = (np.clip(out, 0, 1) * 255 + 0.5).astype(np.uint8)
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(img, contours, -1, (255, 255, 255), 1)
+    return img
+
+
+def pick_cameras(cams: dict[str, Camera], default: list[Camera], views: str | None) -> list[Camera]:
+    if not views:
+        return default
+    out = []
+    for name in [v.strip() for v in views.split(",") if v.strip()]:
+        if name not in cams:
+            raise GoiError(f"--views: no camera named '{name}'")
+        out.append(cams[name])
+    return out
+
+
+def render_masks(
+    renderer: SemanticRenderer, plane: Hyperplane, cams: list[Camera], o: MaskOptions
+) -> list[Path]:
+    """Write the masks (and overlays) of `cams`; returns the mask paths."""
+    plane = plane_for(plane, o.mode, renderer.field, o.threshold)
+    out = Path(o.out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for cam in progress(cams, "render-mask", show=lambda c: c.name if c else None):
+        view = renderer.render(cam, with_rgb=not o.no_overlay)
+        m = mask_of(plane, view)
+        stem = view_file_name(cam.name)
+        write_png(out / f"{stem}.png", m.astype(np.uint8) * 255, o.force)
+        if view.rgb is not None:
+            write_png(out / f"{stem}.overlay.png", overlay(view.rgb, m), o.force)
+        written.append(out / f"{stem}.png")
+    return written

@@ -1,0 +1,172 @@
+"""3D selection (the Gaussians of interest) and `goi export-ply` (the paper's edits).
+
+A Gaussian is selected when its own low-dimensional feature decodes to a codebook entry on the
+positive side of the prompt's plane (W' F + b' > 0 on the decoded feature, as the paper does).
+Gaussians no training view ever saw keep their zero initial feature; they are never selected,
+since their decoded entry says nothing about them.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stages.artifacts import open_h5, put, write_h5
+from stages.errors import GoiError
+from stages.field import Field
+from stages.gaussians import SH_C0, Gaussians, save_ply
+from stages.hyperplane import Hyperplane
+
+SCHEMA = "goi.selection"
+
+
+def select(field: Field, plane: Hyperplane) -> np.ndarray:
+    """[G] bool: the Gaussians of interest."""
+    seen = np.any(field.features != 0, axis=1)
+    return seen & plane.positive[field.decode_index(field.features)]
+
+
+@dataclass
+class Selection:
+    selected: np.ndarray  # [G] bool
+    prompt: str
+    mode: str
+    ply_sha256: str
+
+
+def write_selection(
+    path: Path,
+    sel: np.ndarray,
+    plane: Hyperplane,
+    mode: str,
+    ply_sha: str,
+    inputs: dict,
+    force: bool = False,
+) -> Path:
+    with write_h5(path, SCHEMA, inputs, force) as f:
+        f.attrs["prompt"] = plane.prompt
+        f.attrs["mode"] = mode
+        f.attrs["n_gaussians"] = int(sel.size)
+        f.attrs["n_selected"] = int(sel.sum())
+        f.attrs["ply_sha256"] = ply_sha
+        put(f, "selected", sel.astype(np.uint8), compress=True)
+    return Path(path)
+
+
+def load_selection(path: str | os.PathLike[str]) -> Selection:
+    with open_h5(path, SCHEMA) as f:
+        return Selection(
+            f["selected"][()].astype(bool),
+            str(f.attrs["prompt"]),
+            str(f.attrs["mode"]),
+            str(f.attrs["ply_sha256"]),
+        )
+
+
+_NAMED = {
+    "red": (1.0, 0.0, 0.0),
+    "green": (0.0, 1.0, 0.0),
+    "blue": (0.0, 0.0, 1.0),
+    "yellow": (1.0, 1.0, 0.0),
+    "magenta": (1.0, 0.0, 1.0),
+    "cyan": (0.0, 1.0, 1.0),
+    "white": (1.0, 1.0, 1.0),
+    "black": (0.0, 0.0, 0.0),
+    "orange": (1.0, 0.5, 0.0),
+}
+
+
+def parse_color(text: str) -> np.ndarray:
+    """'red', '#ff8800' or 'r,g,b' with 0..1 or 0..255 numbers -> [3] float 0..1."""
+    t = text.strip().lower()
+    if t in _NAMED:
+        return np.asarray(_NAMED[t], np.float32)
+    if re.fullmatch(r"#[0-9a-f]{6}", t):
+        return np.asarray([int(t[i : i + 2], 16) / 255 for i in (1, 3, 5)], np.float32)
+    try:
+        v = np.asarray([float(x) for x in t.split(",")], np.float64)
+    except ValueError:
+        v = np.zeros(0)
+    if v.shape == (3,) and np.all(np.isfinite(v)) and v.min() >= 0:
+        return np.asarray(v / 255 if v.max() > 1 else v, np.float32)
+    raise GoiError(f"--highlight: {text!r} is not a colour (a name like red, #rrggbb, or r,g,b)")
+
+
+def parse_vector(text: str, option: str) -> np.ndarray:
+    try:
+        v = np.asarray([float(x) for x in text.split(",")], np.float64)
+    except ValueError:
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise GoiError(f"{option}: {text!r} is not three numbers DX,DY,DZ")
+    return v
+
+
+@dataclass
+class ExportOptions:
+    out: Path
+    """PLY to write (INRIA layout, binary little-endian)."""
+    invert: bool = False
+    """Write the scene without the selected Gaussians (deletion)."""
+    highlight: str | None = None
+    """Write the whole scene with the selected Gaussians recoloured: a name, #rrggbb or r,g,b."""
+    translate: str | None = None
+    """Write the whole scene with the selected Gaussians moved by DX,DY,DZ (scene units)."""
+    semantics: bool = False
+    """Add the field's per-Gaussian features as sem_0.. properties (needs --field)."""
+    force: bool = False
+    """Overwrite an existing PLY."""
+
+
+def export_ply(
+    g: Gaussians, sel: Selection, ply_sha: str, o: ExportOptions, field: Field | None = None
+) -> tuple[Path, int]:
+    """Write the edited PLY; returns its path and its number of Gaussians."""
+    if sel.ply_sha256 != ply_sha:
+        raise GoiError(
+            f"--selection: it was made for another PLY (sha256 {sel.ply_sha256[:12]}...); "
+            "select again on this scene"
+        )
+    if sel.selected.size != len(g.vertex):
+        raise GoiError(f"--selection: {sel.selected.size} Gaussians, the PLY has {len(g.vertex)}")
+    edits = [o.invert, o.highlight is not None, o.translate is not None]
+    if sum(edits) > 1:
+        raise GoiError("give at most one of --invert, --highlight and --translate")
+    v = g.vertex.copy()
+    s = sel.selected
+    if o.semantics:
+        if field is None:
+            raise GoiError("--semantics needs --field FILE")
+        from numpy.lib import recfunctions as rfn
+
+        names = [f"sem_{i}" for i in range(field.features.shape[1])]
+        clash = [n for n in names if n in (v.dtype.names or ())]
+        if clash:
+            v = rfn.drop_fields(v, clash, usemask=False)
+        cols = [field.features[:, i].astype(np.float32) for i in range(len(names))]
+        v = rfn.append_fields(v, names, cols, usemask=False)
+    if o.highlight is not None:
+        rgb = parse_color(o.highlight)
+        for i in range(3):
+            v[f"f_dc_{i}"][s] = (rgb[i] - 0.5) / SH_C0
+        for name in v.dtype.names or ():
+            if name.startswith("f_rest_"):
+                v[name][s] = 0  # view-independent colour
+    elif o.translate is not None:
+        d = parse_vector(o.translate, "--translate")
+        for i, axis in enumerate("xyz"):
+            v[axis][s] = (v[axis][s].astype(np.float64) + d[i]).astype(v[axis].dtype)
+    else:
+        keep = ~s if o.invert else s
+        if not keep.any():
+            raise GoiError(
+                f"the selection of {sel.prompt[:60]!r} leaves no Gaussian to write"
+                + ("" if o.invert else "; nothing was selected")
+            )
+        v = v[keep]
+    save_ply(o.out, v, o.force)
+    return Path(o.out), len(v)
