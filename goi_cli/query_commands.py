@@ -8,6 +8,8 @@ from pathlib import Path
 import click
 
 from goi_cli.options import build, dataclass_options, load_scene_from, scene_options
+from stages.demo import DemoOptions
+from stages.eval import EvalOptions
 from stages.hyperplane import HyperplaneOptions
 from stages.masks import MaskOptions
 from stages.query import QueryOptions
@@ -225,6 +227,67 @@ def query_cmd(
     click.echo(f"ply:        {r.ply if r.ply else '(none)'}")
 
 
+@click.command("eval")
+@click.argument("room", type=click.Path(path_type=Path))
+@click.option(
+    "--features",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Directory of per-view feature files for the training views (<view>.npy or .pt).",
+)
+@click.option(
+    "--res-masks",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="RES masks: DIR/<prompt id>/<view>.png on training views.",
+)
+@dataclass_options(EvalOptions)
+def eval_cmd(room: Path, features: Path, res_masks: Path, **kw) -> None:
+    """Run the whole pipeline on a benchmark ROOM (layout: a room README) and score the masks on
+    its TEST views with the paper's metrics, for the four ablation variants."""
+    from stages.eval import run_eval
+
+    o = build(EvalOptions, kw)
+    r = run_eval(room, features, res_masks, o, say=_report)
+    click.echo(f"{'variant':14s} {'mIoU':>7s} {'mPA':>7s} {'mP':>7s} {'mIoU3D':>7s}")
+    for v, s in r["variants"].items():
+        cells = [s["miou"], s["mpa"], s["mp"], s.get("miou_3d")]
+        click.echo(f"{v:14s} " + " ".join("      -" if c is None else f"{c:7.4f}" for c in cells))
+    click.echo(f"report: {o.out}" + (f"\nhtml:   {o.html}" if o.html else ""))
+
+
+@click.command("demo")
+@dataclass_options(DemoOptions)
+def demo_cmd(**kw) -> None:
+    """Run goi end to end on the scene shipped with it: import features, initialise the
+    codebook, fit the field, then query several prompts; writes masks, overlays, one PLY per
+    prompt and OUT/index.html."""
+    from stages.demo import run_demo, summary_lines
+
+    o = build(DemoOptions, kw)
+    res = run_demo(o, say=_report)
+    click.echo("\n".join(["", "goi demo made:", *summary_lines(res)]))
+    click.echo(f"  page: {res['index']}   (open it in a browser)")
+    click.echo(
+        "\nOn your own scene (INRIA layout: point_cloud.ply, cameras.json, images/):\n"
+        "  goi extract --scene S --from FEATURES_DIR --out work/features.h5   "
+        "(or --bundle DIR, see docs/models.md)\n"
+        "  goi init-codebook --features work/features.h5 --out work/codebook.h5\n"
+        "  goi fit-field --scene S --features work/features.h5 --codebook work/codebook.h5 "
+        "--out work/field.h5\n"
+        '  goi query --scene S --field work/field.h5 --prompt "the red chair" '
+        "--text-embeddings T.json --res-masks RES_DIR --out work/queries"
+    )
+
+
 def register(group: click.Group) -> None:
-    for cmd in (fit_hyperplane_cmd, render_mask_cmd, select_cmd, export_ply_cmd, query_cmd):
+    for cmd in (
+        fit_hyperplane_cmd,
+        render_mask_cmd,
+        select_cmd,
+        export_ply_cmd,
+        query_cmd,
+        eval_cmd,
+        demo_cmd,
+    ):
         group.add_command(cmd)

@@ -69,6 +69,10 @@ class FieldOptions:
     """Fraction of the run after which tau_end applies."""
     top_k: int = 0
     """Keep only the K largest blending weights per pixel in the cache (0: all)."""
+    no_tfcc: bool = False
+    """Ablation (paper's 'without TFCC'): decode the low-dimensional features straight to the
+    feature space with a linear decoder and a cosine loss, without the codebook. goi query
+    needs a TFCC field; goi eval uses this for its without_tfcc and baseline variants."""
     checkpoint_every: int = 250
     """Write <out>.ckpt every this many iterations (0: never)."""
     resume: bool = False
@@ -86,9 +90,10 @@ class FieldOptions:
 @dataclass
 class Field:
     features: np.ndarray  # [G, S] float32, PLY order
-    decoder_weight: np.ndarray  # [N, S]
-    decoder_bias: np.ndarray  # [N]
+    decoder_weight: np.ndarray  # [N, S] (direct: [D, S])
+    decoder_bias: np.ndarray  # [N] (direct: [D])
     codebook: np.ndarray  # [N, D] (not necessarily unit: normalise before cosines)
+    direct: bool = False  # the without-TFCC ablation: no codebook lookup
 
     def logits(self, f: np.ndarray) -> np.ndarray:
         """[M, S] -> [M, N]"""
@@ -96,7 +101,17 @@ class Field:
 
     def decode_index(self, f: np.ndarray) -> np.ndarray:
         """[M, S] -> [M] codebook entry of each feature."""
+        if self.direct:
+            raise GoiError(
+                "this field was fitted with --no-tfcc (an ablation) and has no codebook "
+                "entries; queries need a field fitted with the TFCC"
+            )
         return np.argmax(self.logits(f), axis=1)
+
+    def decode_direct(self, f: np.ndarray) -> np.ndarray:
+        """[M, S] -> [M, D] unit features, for a --no-tfcc field."""
+        x = f.astype(np.float32) @ self.decoder_weight.T + self.decoder_bias
+        return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
 
     def unit_codebook(self) -> np.ndarray:
         n = np.linalg.norm(self.codebook, axis=1, keepdims=True)
@@ -106,15 +121,19 @@ class Field:
 def load_field(path: str | os.PathLike[str]) -> Field:
     with open_h5(path, SCHEMA) as f:
         return Field(
-            f["features"][()], f["decoder_weight"][()], f["decoder_bias"][()], f["codebook"][()]
+            f["features"][()],
+            f["decoder_weight"][()],
+            f["decoder_bias"][()],
+            f["codebook"][()],
+            str(f.attrs["decoder"]) == "direct",
         )
 
 
 class _Model(torch.nn.Module):
-    def __init__(self, n_gaussians: int, sem_dim: int, codebook: np.ndarray):
+    def __init__(self, n_gaussians: int, sem_dim: int, codebook: np.ndarray, direct: bool):
         super().__init__()
         self.features = torch.nn.Parameter(torch.zeros(n_gaussians, sem_dim))
-        self.decoder = torch.nn.Linear(sem_dim, codebook.shape[0])
+        self.decoder = torch.nn.Linear(sem_dim, codebook.shape[1 if direct else 0])
         self.codebook = torch.nn.Parameter(torch.from_numpy(codebook.copy()))
 
 
@@ -127,7 +146,10 @@ def _losses(
     o: FieldOptions,
 ) -> tuple[torch.Tensor, list[float]]:
     f_hat = fr.render(model.features, rows)  # [B, S]
-    e = model.decoder(f_hat)  # [B, N]
+    e = model.decoder(f_hat)  # [B, N] (direct: [B, D])
+    if o.no_tfcc:
+        loss = 1 - (v_gt * F.normalize(e, dim=1)).sum(1).mean()
+        return loss, [float(loss.detach()), 0.0, 0.0, 0.0, float(loss.detach())]
     t_unit = F.normalize(model.codebook, dim=1)  # [N, D]
     sim = v_gt @ t_unit.T  # [B, N] cosines (v_gt is unit)
     p = torch.softmax(sim * tau, dim=1)
@@ -171,7 +193,7 @@ def fit_field(scene: Scene, features_path: Path, codebook_path: Path, o: FieldOp
 
     inputs = _inputs(scene, features_path, codebook_path)
     torch.manual_seed(o.seed)
-    model = _Model(g.count, o.sem_dim, codebook)
+    model = _Model(g.count, o.sem_dim, codebook, o.no_tfcc)
     opt = torch.optim.Adam(
         [
             {"params": [model.features], "lr": o.lr_features, "eps": 1e-15},
@@ -231,6 +253,7 @@ def fit_field(scene: Scene, features_path: Path, codebook_path: Path, o: FieldOp
             seed=o.seed,
             config=json.dumps(o.config(), sort_keys=True),
             ply_sha256=inputs["ply"],
+            decoder="direct" if o.no_tfcc else "codebook",
         )
         put(f, "features", model.features.detach().numpy())
         put(f, "decoder_weight", model.decoder.weight.detach().numpy())
