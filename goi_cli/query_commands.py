@@ -76,7 +76,7 @@ def fit_hyperplane_cmd(
     loss (or the authors' hinge loss) until the plane's mask agrees with the RES mask. The plane
     is added to the hyperplanes artifact; the same prompt, field and masks are never refitted.
     """
-    from stages.field import load_field
+    from stages.field import load_field_for
     from stages.hyperplane import ResFiles, ResModel, fit_hyperplane
     from stages.prompts import check_prompt, text_embedding
     from stages.semantic_render import SemanticRenderer
@@ -84,7 +84,7 @@ def fit_hyperplane_cmd(
     scene = load_scene_from(kw)
     o = build(HyperplaneOptions, kw)
     prompt = check_prompt(prompt)
-    f = load_field(field)
+    f = load_field_for(field, scene.ply_digest())
     text, source = text_embedding(prompt, f.codebook.shape[1], text_embeddings, bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
     if res_masks is not None:
@@ -118,7 +118,7 @@ def fit_hyperplane_cmd(
 def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **kw) -> None:  # noqa: ANN001
     """Render the prompt's binary mask (PNG) and an overlay on the rendered RGB at any views."""
     from stages.cameras import load_cameras
-    from stages.field import load_field
+    from stages.field import load_field_for
     from stages.hyperplane import load_plane
     from stages.masks import pick_cameras, render_masks
     from stages.semantic_render import SemanticRenderer
@@ -131,7 +131,7 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
         chosen = pick_cameras({c.name: c for c in cams}, cams, o.views)
     else:
         chosen = pick_cameras(scene.by_name, scene.views("test") or scene.cameras, o.views)
-    renderer = SemanticRenderer(scene.gaussians, load_field(field))
+    renderer = SemanticRenderer(scene.gaussians, load_field_for(field, scene.ply_digest()))
     written = render_masks(renderer, plane, chosen, o)
     click.echo(f"masks ({len(written)} views, {o.mode} mode): {o.out}")
 
@@ -157,13 +157,13 @@ def select_cmd(
     """Select the 3D Gaussians of interest: those whose decoded feature is on the plane's
     positive side. Writes a selection artifact for export-ply."""
     from stages.artifacts import input_digest
-    from stages.field import load_field
+    from stages.field import load_field_for
     from stages.hyperplane import THRESHOLD, load_plane
     from stages.masks import plane_for
     from stages.selection import select, write_selection
 
     scene = load_scene_from(kw)
-    f = load_field(field)
+    f = load_field_for(field, scene.ply_digest())
     plane = plane_for(load_plane(hyperplanes, prompt), mode, f, THRESHOLD)
     sel = select(f, plane)
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field)}
@@ -180,12 +180,12 @@ def export_ply_cmd(selection: Path, field: Path | None, **kw) -> None:
     """Write the selection as an INRIA-layout PLY: only the Gaussians of interest (default),
     the scene without them (--invert), with them recoloured (--highlight) or moved
     (--translate). Readable by splat viewers and by goi."""
-    from stages.field import load_field
+    from stages.field import load_field_for
     from stages.selection import export_ply, load_selection
 
     scene = load_scene_from(kw)
     o = build(ExportOptions, kw)
-    f = load_field(field) if field is not None else None
+    f = load_field_for(field, scene.ply_digest()) if field is not None else None
     out, n = export_ply(scene.gaussians, load_selection(selection), scene.ply_digest(), o, f)
     click.echo(f"ply ({n} Gaussians): {out}")
 

@@ -25,6 +25,9 @@ import numpy as np
 from stages.errors import GoiError
 
 PROVENANCE_ATTRS = ("goi_version", "command", "created", "inputs")
+#: A dataset declaring more than this is refused before anything is read: HDF5 can declare a
+#: huge, unallocated dataset in a tiny file, and reading it would allocate all of it.
+MAX_DATASET_BYTES = 8 << 30
 
 _PLACEHOLDER = re.compile(r"\{(\w+)\}")
 
@@ -154,6 +157,12 @@ def _validate_open(f: h5py.File, expected: str | None) -> tuple[list[str], str]:
             if not isinstance(ds, h5py.Dataset):
                 errors.append(f"'{path}' should be a dataset")
                 continue
+            if ds.size * ds.dtype.itemsize > MAX_DATASET_BYTES:
+                errors.append(
+                    f"dataset '{path}' declares {ds.shape} ({ds.size * ds.dtype.itemsize:.3g} "
+                    f"bytes), more than goi reads ({MAX_DATASET_BYTES >> 30} GiB)"
+                )
+                continue
             want = spec["dtype"]
             got = ds.dtype
             ok = (got.kind in "OSU") if want == "str" else got == np.dtype(want)
@@ -194,8 +203,9 @@ def validate_file(
         try:
             with h5py.File(p, "r") as f:
                 errors, schema = _validate_open(f, expected)
-        except OSError as e:
-            errors, schema = [f"not a readable HDF5 file ({e})"], ""
+        except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
+            # h5py reports damaged metadata with any of these
+            errors, schema = [f"not a readable HDF5 file ({str(e)[:200]})"], ""
     if errors and raise_on_error:
         more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
         raise GoiError(f"{p}: {errors[0]}{more}")

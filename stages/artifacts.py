@@ -139,12 +139,18 @@ def put(group: h5py.Group, name: str, data: Any, compress: bool = False) -> h5py
     return group.create_dataset(name, data=arr, **kwargs)
 
 
-def open_h5(path: str | os.PathLike[str], schema: str) -> h5py.File:
-    """Open an artifact for reading after validating it against `schema`; the caller closes it."""
+@contextlib.contextmanager
+def open_h5(path: str | os.PathLike[str], schema: str) -> Iterator[h5py.File]:
+    """Open an artifact for reading after validating it against `schema`. Damage that only
+    shows while reading (h5py raises OSError, KeyError, ValueError...) becomes a GoiError."""
     from schemas import validate_file
 
     validate_file(path, expected=schema, raise_on_error=True)
-    return h5py.File(path, "r")
+    try:
+        with h5py.File(path, "r") as f:
+            yield f
+    except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
+        raise GoiError(f"{path}: damaged HDF5 artifact ({str(e)[:200]})") from None
 
 
 def write_json(path: str | os.PathLike[str], obj: Any, force: bool = False) -> None:

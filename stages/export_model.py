@@ -166,7 +166,9 @@ def _export_clip(src: Path, tmp: Path, opts: ExportOptions, cfg: dict) -> dict:
     import torch
 
     tf = _transformers()
-    model = tf.CLIPModel.from_pretrained(str(src), attn_implementation="eager").eval()
+    model = tf.CLIPModel.from_pretrained(
+        str(src), attn_implementation="eager", use_safetensors=True
+    ).eval()
     model.requires_grad_(False)  # the ONNX tracer refuses trainable tensors as constants
     vcfg = model.config.vision_config
     size = opts.image_size or int(vcfg.image_size)
@@ -272,7 +274,9 @@ def _export_sentence(src: Path, tmp: Path, opts: ExportOptions, modules: list) -
         raise GoiError(
             f"{src / pooling['path'] / 'config.json'}: only mean or CLS pooling is supported"
         )
-    model = tf.AutoModel.from_pretrained(str(src), attn_implementation="eager").eval()
+    model = tf.AutoModel.from_pretrained(
+        str(src), attn_implementation="eager", use_safetensors=True
+    ).eval()
     model.requires_grad_(False)  # the ONNX tracer refuses trainable tensors as constants
 
     class Sentence(torch.nn.Module):

@@ -121,6 +121,31 @@ def _write_views(
         mode = "r+" if same else "w"
         if same:
             print(f"goi: resuming {partial}", flush=True)
+    created = mode == "w"
+    try:
+        _fill(partial, mode, opts, scene, names, source, inputs, make)
+    except GoiError:
+        # Bad input: nothing of this run is worth keeping. An interruption (Ctrl-C, a crash)
+        # keeps the partial file, so that the next run resumes it.
+        if created:
+            partial.unlink(missing_ok=True)
+        raise
+    with open(partial, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(partial, out)
+    return out
+
+
+def _fill(
+    partial: Path,
+    mode: str,
+    opts: ExtractOptions,
+    scene: Scene,
+    names: list[str],
+    source: str,
+    inputs: dict[str, str],
+    make: Callable[[str], np.ndarray],
+) -> None:
     dim = None
     with h5py.File(partial, mode, track_order=True) as f:
         if mode == "w":
@@ -150,10 +175,6 @@ def _write_views(
         if "dim" not in f.attrs:
             raise GoiError("no views to extract")
         stamp(f, SCHEMA, inputs)  # `created` becomes the time the last view was written
-    with open(partial, "rb+") as fh:
-        os.fsync(fh.fileno())
-    os.replace(partial, out)
-    return out
 
 
 def import_features(scene: Scene, src: Path, opts: ExtractOptions) -> Path:

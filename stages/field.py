@@ -94,6 +94,15 @@ class Field:
     decoder_bias: np.ndarray  # [N] (direct: [D])
     codebook: np.ndarray  # [N, D] (not necessarily unit: normalise before cosines)
     direct: bool = False  # the without-TFCC ablation: no codebook lookup
+    ply_sha256: str = ""  # the PLY it was fitted for
+
+    def check_scene(self, ply_sha256: str, where: str) -> None:
+        """Refuse to use the field with another PLY than the one it was fitted on."""
+        if self.ply_sha256 and self.ply_sha256 != ply_sha256:
+            raise GoiError(
+                f"{where}: the field was fitted on another PLY (sha256 {self.ply_sha256[:12]}..., "
+                f"this scene's is {ply_sha256[:12]}...); fit the field on this scene"
+            )
 
     def logits(self, f: np.ndarray) -> np.ndarray:
         """[M, S] -> [M, N]"""
@@ -126,7 +135,15 @@ def load_field(path: str | os.PathLike[str]) -> Field:
             f["decoder_bias"][()],
             f["codebook"][()],
             str(f.attrs["decoder"]) == "direct",
+            str(f.attrs["ply_sha256"]),
         )
+
+
+def load_field_for(path: str | os.PathLike[str], ply_sha256: str) -> Field:
+    """load_field, refusing a field fitted on another PLY than the scene's."""
+    field = load_field(path)
+    field.check_scene(ply_sha256, f"--field {path}")
+    return field
 
 
 class _Model(torch.nn.Module):

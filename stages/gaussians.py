@@ -193,7 +193,7 @@ def load_ply(path: str | os.PathLike[str]) -> Gaussians:
         sh[:, 1:] = cols(rest).reshape(n, 3, k - 1).transpose(0, 2, 1)
     op_logit = cols(["opacity"])[:, 0]
     log_scales = cols(["scale_0", "scale_1", "scale_2"])
-    rots = cols(["rot_0", "rot_1", "rot_2", "rot_3"])
+    rots = cols(["rot_0", "rot_1", "rot_2", "rot_3"]).astype(np.float64)  # float32 squares overflow
     norm = np.linalg.norm(rots, axis=1)
     valid = norm > 1e-12
     quats = rots / np.where(valid, norm, 1.0)[:, None]

@@ -13,7 +13,7 @@ from pathlib import Path
 from stages.artifacts import input_digest
 from stages.cameras import Camera
 from stages.errors import GoiError
-from stages.field import load_field
+from stages.field import load_field_for
 from stages.hyperplane import HyperplaneOptions, ResFiles, ResModel, fit_hyperplane
 from stages.masks import MODES, MaskOptions, plane_for, render_masks
 from stages.prompts import check_prompt, safe_name, text_embedding
@@ -69,9 +69,10 @@ def run_query(
         raise GoiError(f"--mode: {q.mode!r} is not one of {', '.join(MODES)}")
     if q.export not in EXPORTS:
         raise GoiError(f"--export: {q.export!r} is not one of {', '.join(EXPORTS)}")
-    field = renderer.field if renderer else load_field(field_path)
+    field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
     text, text_source = text_embedding(prompt, field.codebook.shape[1], text_embeddings, bundle)
+    cams = _render_cameras(scene, q.views)  # checked before any work
     out = Path(q.out)
     out.mkdir(parents=True, exist_ok=True)
     train = scene.views("train")
@@ -95,7 +96,6 @@ def run_query(
         plane, cached = threshold_plane(prompt, text, field, hp.threshold), True
     plane = plane_for(plane, q.mode, field, hp.threshold)
     pdir = out / safe_name(prompt)
-    cams = _render_cameras(scene, q.views)
     masks = render_masks(
         renderer, plane, cams, MaskOptions(out=pdir / "masks", mode="hyperplane", force=True)
     )

@@ -74,7 +74,8 @@ def test_bad_artifacts_are_refused_with_the_reason(tmp_path, change, words):
     p = _cache_file(tmp_path)
     _tamper(p, change)
     with pytest.raises(GoiError) as e:
-        open_h5(p, "goi.blend_cache")
+        with open_h5(p, "goi.blend_cache"):
+            pass
     msg = str(e.value)
     assert msg.startswith(str(p))
     for w in words:
@@ -88,7 +89,8 @@ def test_wrong_kind_truncated_and_non_hdf5_files(tmp_path):
     data = p.read_bytes()
     (tmp_path / "t.h5").write_bytes(data[: len(data) // 2])
     with pytest.raises(GoiError, match="t.h5"):
-        open_h5(tmp_path / "t.h5", "goi.blend_cache")
+        with open_h5(tmp_path / "t.h5", "goi.blend_cache"):
+            pass
     (tmp_path / "x.h5").write_text("not hdf5")
     assert validate_file(tmp_path / "x.h5")[1][0].startswith("not a readable HDF5 file")
 
