@@ -87,35 +87,41 @@ def build(cls: type, kwargs: dict[str, Any]) -> Any:
     return cls(**{k: kwargs.pop(k) for k in list(kwargs) if k in names})
 
 
-def scene_options(fn: Callable) -> Callable:
-    """--scene DIR, or explicit --ply/--cameras/--images (they override the directory's)."""
-    for opt in reversed(
-        [
-            click.option(
-                "--scene",
-                type=click.Path(path_type=Path),
-                help="Scene directory: point_cloud.ply, cameras (cameras.json, "
-                "transforms*.json or sparse/), images/, split.json.",
-            ),
-            click.option(
-                "--ply",
-                type=click.Path(path_type=Path),
-                help="The 3DGS PLY (INRIA layout), instead of the scene's.",
-            ),
-            click.option(
-                "--cameras",
-                type=click.Path(path_type=Path),
-                help="cameras.json, transforms*.json or a COLMAP model directory.",
-            ),
-            click.option(
-                "--images",
-                type=click.Path(path_type=Path),
-                help="Directory of the training images.",
-            ),
-        ]
-    ):
-        fn = opt(fn)
-    return fn
+def stack(*opts: Callable) -> Callable:
+    """One decorator applying several click options, in the order given."""
+
+    def deco(fn: Callable) -> Callable:
+        for o in reversed(opts):
+            fn = o(fn)
+        return fn
+
+    return deco
+
+
+#: --scene DIR, or explicit --ply/--cameras/--images (they override the directory's).
+scene_options = stack(
+    click.option(
+        "--scene",
+        type=click.Path(path_type=Path),
+        help="Scene directory: point_cloud.ply, cameras (cameras.json, "
+        "transforms*.json or sparse/), images/, split.json.",
+    ),
+    click.option(
+        "--ply",
+        type=click.Path(path_type=Path),
+        help="The 3DGS PLY (INRIA layout), instead of the scene's.",
+    ),
+    click.option(
+        "--cameras",
+        type=click.Path(path_type=Path),
+        help="cameras.json, transforms*.json or a COLMAP model directory.",
+    ),
+    click.option(
+        "--images",
+        type=click.Path(path_type=Path),
+        help="Directory of the training images.",
+    ),
+)
 
 
 def load_scene_from(kwargs: dict[str, Any]):  # noqa: ANN201

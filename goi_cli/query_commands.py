@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 import click
 
-from goi_cli.options import build, dataclass_options, load_scene_from, scene_options
+from goi_cli.options import build, dataclass_options, load_scene_from, scene_options, stack
 from stages.demo import DemoOptions
 from stages.eval import EvalOptions
 from stages.hyperplane import HyperplaneOptions
@@ -18,20 +17,11 @@ from stages.selection import ExportOptions
 EXISTING = click.Path(exists=True, dir_okay=False, path_type=Path)
 
 
-def _stack(*opts: Callable) -> Callable:
-    def deco(fn: Callable) -> Callable:
-        for o in reversed(opts):
-            fn = o(fn)
-        return fn
-
-    return deco
-
-
 field_option = click.option(
     "--field", type=EXISTING, required=True, help="Field artifact (goi fit-field)."
 )
 prompt_option = click.option("--prompt", required=True, help="The text query.")
-text_options = _stack(
+text_options = stack(
     click.option(
         "--text-embeddings",
         type=click.Path(path_type=Path),
@@ -45,7 +35,7 @@ text_options = _stack(
         "any, makes the RES masks).",
     ),
 )
-res_options = _stack(
+res_options = stack(
     click.option(
         "--res-masks",
         type=click.Path(path_type=Path),
@@ -101,13 +91,16 @@ def fit_hyperplane_cmd(
     click.echo(f"hyperplane ({state}, {n} of {plane.scores.size} entries positive): {o.out}")
 
 
+hyperplanes_option = click.option(
+    "--hyperplanes", type=EXISTING, required=True, help="Hyperplanes artifact (fit-hyperplane)."
+)
+
+
 @click.command("render-mask")
 @scene_options
 @field_option
 @prompt_option
-@click.option(
-    "--hyperplanes", type=EXISTING, required=True, help="Hyperplanes artifact (fit-hyperplane)."
-)
+@hyperplanes_option
 @click.option(
     "--camera-file",
     type=click.Path(path_type=Path),
@@ -140,9 +133,7 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
 @scene_options
 @field_option
 @prompt_option
-@click.option(
-    "--hyperplanes", type=EXISTING, required=True, help="Hyperplanes artifact (fit-hyperplane)."
-)
+@hyperplanes_option
 @click.option(
     "--mode",
     default="hyperplane",
@@ -221,7 +212,11 @@ def query_cmd(
         report=_report,
     )
     click.echo(f"prompt:     {r.prompt}")
-    click.echo(f"hyperplane: {q.out / 'hyperplanes.h5'} ({'cached' if r.cached else 'fitted'})")
+    if q.mode == "threshold":
+        click.echo(f"hyperplane: none (--mode threshold: cosine > {hp.threshold})")
+    else:
+        state = "cached" if r.cached else "fitted"
+        click.echo(f"hyperplane: {q.out / 'hyperplanes.h5'} ({state})")
     click.echo(f"masks:      {r.masks[0].parent} ({len(r.masks)} views, overlays beside them)")
     click.echo(f"selection:  {r.selection} ({r.n_selected} Gaussians)")
     click.echo(f"ply:        {r.ply if r.ply else '(none)'}")

@@ -158,6 +158,19 @@ def write_json(path: str | os.PathLike[str], obj: Any, force: bool = False) -> N
         tmp.write_text(json.dumps(obj, indent=1, sort_keys=False) + "\n")
 
 
+def read_json(path: str | os.PathLike[str], missing: str = "missing") -> Any:
+    """A JSON document; a missing or malformed file is a GoiError naming it."""
+    p = Path(path)
+    try:
+        return json.loads(p.read_text())
+    except FileNotFoundError:
+        raise GoiError(f"{p}: {missing}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise GoiError(f"{p}: not valid JSON ({e})") from None
+    except OSError as e:
+        raise GoiError(f"{p}: cannot read ({e.strerror or e})") from None
+
+
 def write_png(path: str | os.PathLike[str], image: np.ndarray, force: bool = False) -> None:
     """An image ([H, W] grey or [H, W, 3] RGB, uint8) as a PNG, atomically."""
     import cv2

@@ -9,7 +9,6 @@ registered, and manifest paths may not leave the bundle directory.
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from functools import cached_property
@@ -19,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from schemas import validate_json
-from stages.artifacts import sha256_files
+from stages.artifacts import read_json, sha256_files
 from stages.errors import GoiError
 
 MANIFEST = "manifest.json"
@@ -201,10 +200,7 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
     mf = root / MANIFEST
     if not mf.is_file():
         raise GoiError(f"--bundle: {root} has no {MANIFEST}")
-    try:
-        manifest = json.loads(mf.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise GoiError(f"{mf}: not valid JSON ({e})") from None
+    manifest = read_json(mf)
     validate_json(manifest, "goi.bundle", str(mf))
     if "image_encoder" not in manifest and "text_encoder" not in manifest:
         raise GoiError(f"{mf}: needs at least one of 'image_encoder' and 'text_encoder'")

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from stages import __version__
-from stages.artifacts import command_line, write_json
+from stages.artifacts import command_line, read_json, write_json
 from stages.cameras import Camera
 from stages.codebook import CodebookOptions, init_codebook
 from stages.errors import GoiError
@@ -89,12 +89,7 @@ class Prompt:
 
 def load_prompts(room: Path) -> list[Prompt]:
     path = room / "prompts.json"
-    try:
-        raw = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise GoiError(f"{path}: missing; a room lists its prompts there") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise GoiError(f"{path}: not valid JSON ({e})") from None
+    raw = read_json(path, "missing; a room lists its prompts there")
     if not isinstance(raw, list) or not raw:
         raise GoiError(f"{path}: expected a non-empty list of prompts")
     out = []

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from stages.artifacts import check_writable
+from stages.artifacts import check_writable, read_json
 from stages.bundle import MANIFEST, load_bundle
 from stages.errors import GoiError
 
@@ -62,13 +62,8 @@ def _transformers() -> Any:
     return transformers
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise GoiError(f"{path}: missing (a Hugging Face checkpoint directory needs it)") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise GoiError(f"{path}: not valid JSON ({e})") from None
+def _read_json(path: Path) -> Any:
+    return read_json(path, "missing (a Hugging Face checkpoint directory needs it)")
 
 
 def _onnx_export(model: Any, args: tuple, path: Path, names: tuple, axes: dict, opset: int) -> None:
@@ -314,7 +309,7 @@ def export_model(src: Path, opts: ExportOptions) -> Path:
         if cfg.get("model_type") == "clip":
             manifest = _export_clip(src, tmp, opts, cfg)
         elif (src / "modules.json").is_file():
-            raw = json.loads((src / "modules.json").read_text())
+            raw = _read_json(src / "modules.json")
             manifest = _export_sentence(src, tmp, opts, raw)
         else:
             raise GoiError(

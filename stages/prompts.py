@@ -8,13 +8,13 @@ different texts never share a file. The original text is kept in the artifacts a
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import re
 from pathlib import Path
 
 import numpy as np
 
+from stages.artifacts import read_json
 from stages.errors import GoiError
 
 MAX_PROMPT_CHARS = 1000
@@ -47,12 +47,7 @@ def view_file_name(view: str) -> str:
 
 def load_text_embeddings(path: Path) -> dict[str, np.ndarray]:
     """`{text: [floats]}` -> unit vectors; every entry is checked."""
-    try:
-        raw = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise GoiError(f"--text-embeddings: {path} does not exist") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise GoiError(f"{path}: not valid JSON ({e})") from None
+    raw = read_json(path, "does not exist (--text-embeddings)")
     if not isinstance(raw, dict) or not raw:
         raise GoiError(f"{path}: expected a JSON object {{text: [floats]}} with at least one entry")
     out: dict[str, np.ndarray] = {}
