@@ -113,7 +113,7 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
     from stages.cameras import load_cameras
     from stages.field import load_field_for
     from stages.hyperplane import load_plane
-    from stages.masks import pick_cameras, render_masks
+    from stages.masks import default_cameras, pick_cameras, render_masks
     from stages.semantic_render import SemanticRenderer
 
     scene = load_scene_from(kw)
@@ -123,7 +123,7 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
         cams = load_cameras(camera_file)
         chosen = pick_cameras({c.name: c for c in cams}, cams, o.views)
     else:
-        chosen = pick_cameras(scene.by_name, scene.views("test") or scene.cameras, o.views)
+        chosen = default_cameras(scene, o.views)
     renderer = SemanticRenderer(scene.gaussians, load_field_for(field, scene.ply_digest()))
     written = render_masks(renderer, plane, chosen, o)
     click.echo(f"masks ({len(written)} views, {o.mode} mode): {o.out}")

@@ -157,7 +157,7 @@ class DenseCLIP:
         return Dense().eval()
 
 
-def _export_clip(src: Path, tmp: Path, opts: ExportOptions, cfg: dict) -> dict:
+def _export_clip(src: Path, tmp: Path, opts: ExportOptions) -> dict:
     import torch
 
     tf = _transformers()
@@ -307,7 +307,7 @@ def export_model(src: Path, opts: ExportOptions) -> Path:
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as t:
         tmp = Path(t)
         if cfg.get("model_type") == "clip":
-            manifest = _export_clip(src, tmp, opts, cfg)
+            manifest = _export_clip(src, tmp, opts)
         elif (src / "modules.json").is_file():
             raw = _read_json(src / "modules.json")
             manifest = _export_sentence(src, tmp, opts, raw)

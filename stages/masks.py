@@ -18,6 +18,7 @@ from stages.errors import GoiError
 from stages.hyperplane import THRESHOLD, Hyperplane, threshold_plane
 from stages.progress import progress
 from stages.prompts import view_file_name
+from stages.scene import Scene
 from stages.semantic_render import DecodedView, SemanticRenderer
 
 MODES = ("hyperplane", "threshold")
@@ -53,16 +54,31 @@ def mask_of(plane: Hyperplane, view: DecodedView) -> np.ndarray:
     return plane.positive[view.index] & view.covered
 
 
-def overlay(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """The rendered RGB with the mask tinted and outlined: [H, W, 3] uint8."""
+def overlay(
+    rgb: np.ndarray,
+    mask: np.ndarray,
+    outline: np.ndarray | None = None,
+    outline_color: tuple[int, int, int] = (255, 255, 255),
+    width: int = 1,
+) -> np.ndarray:
+    """RGB (0..1 floats or uint8) with `mask` tinted red and `outline` (default: the mask)
+    outlined: [H, W, 3] uint8."""
     import cv2
 
-    out = rgb.copy()
+    out = rgb.astype(np.float32)
+    if rgb.dtype == np.uint8:
+        out /= 255
     out[mask] = 0.45 * out[mask] + 0.55 * HIGHLIGHT
     img = (np.clip(out, 0, 1) * 255 + 0.5).astype(np.uint8)
-    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    cv2.drawContours(img, contours, -1, (255, 255, 255), 1)
+    edge = mask if outline is None else outline
+    contours, _ = cv2.findContours(edge.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(img, contours, -1, outline_color, width)
     return img
+
+
+def default_cameras(scene: Scene, views: str | None) -> list[Camera]:
+    """--views of the scene, else its test split, else all its cameras."""
+    return pick_cameras(scene.by_name, scene.views("test") or scene.cameras, views)
 
 
 def pick_cameras(cams: dict[str, Camera], default: list[Camera], views: str | None) -> list[Camera]:

@@ -11,11 +11,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from stages.artifacts import input_digest
-from stages.cameras import Camera
 from stages.errors import GoiError
 from stages.field import load_field_for
 from stages.hyperplane import HyperplaneOptions, ResFiles, ResModel, fit_hyperplane
-from stages.masks import MODES, MaskOptions, plane_for, render_masks
+from stages.masks import MODES, MaskOptions, default_cameras, plane_for, render_masks
 from stages.prompts import check_prompt, safe_name, text_embedding
 from stages.scene import Scene
 from stages.selection import ExportOptions, export_ply, load_selection, select, write_selection
@@ -72,7 +71,7 @@ def run_query(
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
     text, text_source = text_embedding(prompt, field.codebook.shape[1], text_embeddings, bundle)
-    cams = _render_cameras(scene, q.views)  # checked before any work
+    cams = default_cameras(scene, q.views)  # checked before any work
     out = Path(q.out)
     out.mkdir(parents=True, exist_ok=True)
     train = scene.views("train")
@@ -115,10 +114,3 @@ def run_query(
         if sel.any() or q.export != "subset":
             ply, _ = export_ply(scene.gaussians, load_selection(sel_path), scene.ply_digest(), eo)
     return QueryResult(prompt, pdir, cached, masks, sel_path, ply, int(sel.sum()), dict(plane.info))
-
-
-def _render_cameras(scene: Scene, views: str | None) -> list[Camera]:
-    from stages.masks import pick_cameras
-
-    test = scene.views("test")
-    return pick_cameras(scene.by_name, test or scene.cameras, views)

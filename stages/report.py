@@ -42,23 +42,15 @@ def write_page(path: Path, title: str, body: str) -> None:
         tmp.write_text(doc, encoding="utf-8")
 
 
-def overlay_pair(rgb: np.ndarray, pred: np.ndarray, gt: np.ndarray | None) -> np.ndarray:
+def overlay_pair(rgb: np.ndarray, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """Prediction tinted red; ground truth outlined in green. [H, W, 3] uint8."""
     import cv2
 
-    img = rgb.astype(np.float32)
-    if rgb.dtype == np.uint8:
-        img /= 255
-    if pred.shape != img.shape[:2]:
-        pred = cv2.resize(pred.astype(np.uint8), img.shape[1::-1], interpolation=0).astype(bool)
-    img[pred] = 0.45 * img[pred] + 0.55 * np.array([1.0, 0.15, 0.1], np.float32)
-    out = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
-    if gt is not None:
-        contours, _ = cv2.findContours(
-            gt.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
-        )
-        cv2.drawContours(out, contours, -1, (40, 230, 60), 2)
-    return out
+    from stages.masks import overlay
+
+    if pred.shape != rgb.shape[:2]:
+        pred = cv2.resize(pred.astype(np.uint8), rgb.shape[1::-1], interpolation=0).astype(bool)
+    return overlay(rgb, pred, outline=gt, outline_color=(40, 230, 60), width=2)
 
 
 def rel(path: Path, page: Path) -> str:
