@@ -352,18 +352,26 @@ def _spmm_rows(indptr, indices, weights, rows, f, out):
                 out[i, c] += w * f[g, c]
 
 
+#: The transpose sums into this many private buffers, each over a fixed block of rows, so the
+#: order of the float additions never depends on thread scheduling or on the machine's core
+#: count: the same inputs give the same gradients, bit for bit, everywhere.
+T_BLOCKS = 4
+
+
 @numba.njit(parallel=True, cache=True)
 def _spmm_rows_t(indptr, indices, weights, rows, grad, buf):
-    """buf[thread, j] += w[rows[i], j] grad[i]: the transpose, one private buffer per thread."""
+    """buf[b, j] += w[rows[i], j] grad[i] for the rows i of block b: the transpose."""
     n_ch = grad.shape[1]
-    for i in numba.prange(rows.shape[0]):
-        tid = numba.get_thread_id()
-        r = rows[i]
-        for j in range(indptr[r], indptr[r + 1]):
-            w = weights[j]
-            g = indices[j]
-            for c in range(n_ch):
-                buf[tid, g, c] += w * grad[i, c]
+    n_blocks = buf.shape[0]
+    n = rows.shape[0]
+    for b in numba.prange(n_blocks):
+        for i in range(n * b // n_blocks, n * (b + 1) // n_blocks):
+            r = rows[i]
+            for j in range(indptr[r], indptr[r + 1]):
+                w = weights[j]
+                g = indices[j]
+                for c in range(n_ch):
+                    buf[b, g, c] += w * grad[i, c]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -375,7 +383,7 @@ def _gather(src, idx, out):
 
 @numba.njit(parallel=True, cache=True)
 def _scatter_sum(bufs, idx, out):
-    """out[idx[i]] = sum_t bufs[t, i]: reduce the per-thread buffers straight into PLY order."""
+    """out[idx[i]] = sum_b bufs[b, i]: reduce the block buffers straight into PLY order."""
     for i in numba.prange(idx.shape[0]):
         out[idx[i]] = bufs[0, i]
         for t in range(1, bufs.shape[0]):
@@ -444,7 +452,7 @@ class _SparseRender(torch.autograd.Function):
     def backward(ctx, grad: torch.Tensor):  # noqa: ANN001, ANN205
         fr: FeatureRenderer = ctx.fr
         g = grad.detach().contiguous().numpy()
-        buf = np.zeros((numba.get_num_threads(), fr.n_gaussians, g.shape[1]), np.float32)
+        buf = np.zeros((T_BLOCKS, fr.n_gaussians, g.shape[1]), np.float32)
         _spmm_rows_t(fr.indptr, fr.indices, fr.weights, ctx.rows, g, buf)
         grad_f = np.empty_like(buf[0])
         _scatter_sum(buf, fr.order, grad_f)  # back to PLY order

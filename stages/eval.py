@@ -332,12 +332,11 @@ def run_eval(
         summary["prompts"] = summary.pop("prompts")
     from schemas import validate_json
 
-    validate_json(report, "goi.eval", str(o.out))  # what we write, our reader must accept
-    write_json(o.out, report, force=True)
     if o.html is not None:
         from stages.report import eval_page
 
-        with timer("html"):
+        with timer("html"):  # report["timings_s"] is timer.t: the page's own time lands too
             eval_page(Path(o.html), report, prompts, figures, tfcc_views, room, scene)
+    validate_json(report, "goi.eval", str(o.out))  # what we write, our reader must accept
     write_json(o.out, report, force=True)
     return report

@@ -12,10 +12,13 @@ Geometry is frozen, so f_hat comes from the blend cache, pooled to the feature m
 
 from __future__ import annotations
 
+import functools
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -189,6 +192,24 @@ def _inputs(scene: Scene, features_path: Path, codebook_path: Path) -> dict[str,
     }
 
 
+def _deterministic(fn: Callable[..., Path]) -> Callable[..., Path]:
+    """Run with torch's deterministic kernels. The codebook's gradient through T[argmax e] is an
+    indexed accumulation, which torch otherwise runs with unordered parallel adds on the CPU, so
+    two runs with the same seed would differ in the last bits."""
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> Path:
+        before = torch.are_deterministic_algorithms_enabled()
+        torch.use_deterministic_algorithms(True)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            torch.use_deterministic_algorithms(before)
+
+    return run
+
+
+@_deterministic
 def fit_field(scene: Scene, features_path: Path, codebook_path: Path, o: FieldOptions) -> Path:
     check_writable(o.out, o.force)
     if o.iterations < 1 or o.sem_dim < 1 or o.views_per_step < 1:

@@ -53,6 +53,19 @@ def overlay_pair(rgb: np.ndarray, pred: np.ndarray, gt: np.ndarray) -> np.ndarra
     return overlay(rgb, pred, outline=gt, outline_color=(40, 230, 60), width=2)
 
 
+def _background(scene: Any, view: str, rendered: dict) -> np.ndarray:
+    """The room's photo of a view, else goi's own rendering of it (a room without images/)."""
+    from stages.errors import GoiError
+    from stages.scene import read_rgb
+
+    try:
+        return read_rgb(scene.image_path(scene.camera(view)))
+    except GoiError:
+        if view in rendered and rendered[view].rgb is not None:
+            return rendered[view].rgb
+        raise
+
+
 def rel(path: Path, page: Path) -> str:
     return esc(Path(os.path.relpath(path, page.parent)).as_posix())
 
@@ -93,8 +106,6 @@ def eval_page(
         "</table><h2>Test views</h2><p class='key'>red: predicted mask; green outline: "
         "ground truth. Rows: variants.</p>"
     )
-    from stages.scene import read_rgb
-
     for p in prompts:
         body.append(f"<h3>{esc(p.id)}: {esc(p.text)}</h3>")
         for v in variants:
@@ -104,7 +115,7 @@ def eval_page(
                 continue
             body.append(f"<div><b>{esc(v)}</b><br>")
             for view, pred in preds.items():
-                rgb = read_rgb(scene.image_path(scene.camera(view)))
+                rgb = _background(scene, view, tfcc_views)
                 name = f"{safe_name(p.id)}_{safe_name(v)}_{view_file_name(view)}.png"
                 write_png(files / name, overlay_pair(rgb, pred, gts[view]), force=True)
                 iou = report["variants"][v]["prompts"][p.id]["views"][view]["iou"]

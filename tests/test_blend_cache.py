@@ -147,3 +147,32 @@ def test_pooled_rows_render_the_mean_of_their_pixels(tmp_path):
     # A different size is a different cache: rebuilt, not reused.
     again = bc.build_or_load(tmp_path / "pool.h5", scene, scene.views("train"))
     assert again.views["a"].width == 48
+
+
+def test_sparse_gradient_does_not_depend_on_the_thread_count(tmp_path):
+    """The transpose sums over fixed row blocks: 1 thread and 2 threads give the same bits."""
+    import numba
+    import torch
+
+    from stages.blend_cache import FeatureRenderer, build_cache
+    from stages.gaussians import load_ply
+    from stages.rasterizer import Rasterizer
+    from stages.synthetic import ring_cameras, room_vertex
+
+    write_ply(tmp_path / "p.ply", room_vertex(4000, seed=1)[0])
+    rast = Rasterizer.from_gaussians(load_ply(tmp_path / "p.ply"))
+    fr = FeatureRenderer(build_cache(rast, ring_cameras(2, 64, 48), 0, "", ""))
+    rows = np.sort(np.random.default_rng(0).choice(2 * 64 * 48, 4000, replace=False))
+    f = torch.randn(4000, 10, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    up = torch.randn(len(rows), 10, generator=torch.Generator().manual_seed(1))
+    grads = []
+    before = numba.get_num_threads()
+    try:
+        for threads in (1, before):
+            numba.set_num_threads(threads)
+            f.grad = None
+            (fr.render(f, rows) * up).sum().backward()
+            grads.append(f.grad.numpy().copy())
+    finally:
+        numba.set_num_threads(before)
+    assert grads[0].tobytes() == grads[1].tobytes()
