@@ -6,12 +6,13 @@ already done are skipped) and the finished file is renamed to `<out>` only at th
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import pickle
 import warnings
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,60 +122,52 @@ def _write_views(
         mode = "r+" if same else "w"
         if same:
             print(f"goi: resuming {partial}", flush=True)
-    created = mode == "w"
-    try:
-        _fill(partial, mode, opts, scene, names, source, inputs, make)
-    except GoiError:
-        # Bad input: nothing of this run is worth keeping. An interruption (Ctrl-C, a crash)
-        # keeps the partial file, so that the next run resumes it.
-        if created:
-            partial.unlink(missing_ok=True)
-        raise
+    # On bad input nothing of this run is worth keeping, so a partial file it created goes.
+    # An interruption (Ctrl-C, a crash) keeps it, so that the next run resumes it.
+    with _removed_on_bad_input(partial, created=mode == "w"):
+        dim = None
+        with h5py.File(partial, mode, track_order=True) as f:
+            if mode == "w":
+                stamp(f, SCHEMA, inputs)
+                f.attrs["source"] = source
+                f.create_group("views", track_order=True)
+            views = f["views"]
+            for v in [n for n in names if n in views]:
+                if views[v].get("features") is None:
+                    del views[v]  # a view cut off while being written
+            todo = [n for n in names if n not in views]
+            for name in progress(todo, "extract", length=len(todo)):
+                hwd = make(name)
+                if dim is None:
+                    dim = int(f.attrs.get("dim", hwd.shape[2]))
+                if hwd.shape[2] != dim:
+                    raise GoiError(
+                        f"features of view '{name}' have dimension {hwd.shape[2]}, "
+                        f"the other views {dim}"
+                    )
+                cam = scene.camera(name)
+                g = views.create_group(name)
+                g.attrs.update(image_width=cam.width, image_height=cam.height)
+                put(g, "features", hwd.astype(np.float16), compress=True)
+                f.attrs["dim"] = dim
+                f.flush()
+            if "dim" not in f.attrs:
+                raise GoiError("no views to extract")
+            stamp(f, SCHEMA, inputs)  # `created` becomes the time the last view was written
     with open(partial, "rb+") as fh:
         os.fsync(fh.fileno())
     os.replace(partial, out)
     return out
 
 
-def _fill(
-    partial: Path,
-    mode: str,
-    opts: ExtractOptions,
-    scene: Scene,
-    names: list[str],
-    source: str,
-    inputs: dict[str, str],
-    make: Callable[[str], np.ndarray],
-) -> None:
-    dim = None
-    with h5py.File(partial, mode, track_order=True) as f:
-        if mode == "w":
-            stamp(f, SCHEMA, inputs)
-            f.attrs["source"] = source
-            f.create_group("views", track_order=True)
-        views = f["views"]
-        for v in [n for n in names if n in views]:
-            if views[v].get("features") is None:
-                del views[v]  # a view cut off while being written
-        todo = [n for n in names if n not in views]
-        for name in progress(todo, "extract", length=len(todo)):
-            hwd = make(name)
-            if dim is None:
-                dim = int(f.attrs.get("dim", hwd.shape[2]))
-            if hwd.shape[2] != dim:
-                raise GoiError(
-                    f"features of view '{name}' have dimension {hwd.shape[2]}, "
-                    f"the other views {dim}"
-                )
-            cam = scene.camera(name)
-            g = views.create_group(name)
-            g.attrs.update(image_width=cam.width, image_height=cam.height)
-            put(g, "features", hwd.astype(np.float16), compress=True)
-            f.attrs["dim"] = dim
-            f.flush()
-        if "dim" not in f.attrs:
-            raise GoiError("no views to extract")
-        stamp(f, SCHEMA, inputs)  # `created` becomes the time the last view was written
+@contextlib.contextmanager
+def _removed_on_bad_input(path: Path, created: bool) -> Iterator[None]:
+    try:
+        yield
+    except GoiError:
+        if created:
+            path.unlink(missing_ok=True)
+        raise
 
 
 def import_features(scene: Scene, src: Path, opts: ExtractOptions) -> Path:
