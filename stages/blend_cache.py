@@ -355,7 +355,7 @@ def _spmm_rows(indptr, indices, weights, rows, f, out):
 #: The transpose sums into this many private buffers, each over a fixed block of rows, so the
 #: order of the float additions never depends on thread scheduling or on the machine's core
 #: count: the same inputs give the same gradients, bit for bit, everywhere.
-T_BLOCKS = 4
+T_BLOCKS = 2
 
 
 @numba.njit(parallel=True, cache=True)
