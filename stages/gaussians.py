@@ -106,7 +106,7 @@ def _check_header(path: Path) -> None:
         raise GoiError(f"{path}: PLY header has no 'end_header' in its first 64 KiB")
     body_start = head.index(b"\n", end) + 1 if b"\n" in head[end:] else len(head)
     lines = head[:end].decode("ascii", "replace").splitlines()
-    fmt = next((ln.split()[1] for ln in lines if ln.startswith("format ")), "")
+    fmt = next(((ln.split() + ["", ""])[1] for ln in lines if ln.startswith("format ")), "")
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise GoiError(f"{path}: unknown PLY format {fmt!r}")
     elements: list[tuple[str, int, int | None]] = []  # name, count, bytes per row (None: lists)
@@ -119,6 +119,8 @@ def _check_header(path: Path) -> None:
                 raise GoiError(f"{path}: bad element count {tok[2]!r} for '{tok[1]}'")
             elements.append((tok[1], int(tok[2]), 0))
         elif tok[0] == "property" and elements:
+            if len(tok) < 3:
+                raise GoiError(f"{path}: malformed PLY header line {ln.strip()!r}")
             name, count, row = elements[-1]
             if tok[1] == "list" or row is None:
                 elements[-1] = (name, count, None)

@@ -11,7 +11,7 @@ import time
 import h5py
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from goi_cli.main import main
@@ -162,6 +162,7 @@ def test_ply_reader_on_arbitrary_bytes(tmp_path_factory, data):
 
 @FAST
 @given(st.integers(0, 3000), st.binary(min_size=1, max_size=64))
+@example(pos=11, junk=b"\n")  # found by hypothesis: a 'format' line with nothing after it
 def test_ply_reader_on_corrupted_files(tmp_path_factory, pos, junk):
     p = tmp_path_factory.mktemp("ply") / "x.ply"
     write_ply(p, random_vertex(40))
