@@ -42,6 +42,7 @@ from stages.hyperplane import (
     fit_osh,
     threshold_plane,
 )
+from stages.masks import mask_of
 from stages.metrics import Scores, image_scores, iou_3d, mean_scores
 from stages.progress import progress
 from stages.prompts import load_text_embeddings
@@ -260,10 +261,12 @@ def run_eval(
         "timings_s": timer.t,
     }
     figures: dict[str, dict[str, list]] = {v: {} for v in variants}
+    train = scene.views("train")
+    if "direct" in fields:  # every prompt scores the same decoded Gaussians
+        direct_gaussians = fields["direct"].decode_direct(fields["direct"].features)  # [G, D]
     for p in progress(prompts, "eval prompts", show=lambda p: p.id if p else None):
         text = emb[p.text]
         source = ResFiles(res, p.id, p.text)
-        train = scene.views("train")
         views = [v for v in p.test_views if v in test]
         gts = {v: read_mask(room / "eval" / "masks" / p.id / f"{v}.png") for v in views}
         target = None if gaussian_ids is None else np.isin(gaussian_ids, p.targets)
@@ -280,9 +283,7 @@ def run_eval(
                     info["fit_views"] = json.loads(plane.info["views"])
                 else:
                     plane = threshold_plane(p.text, text, field, o.threshold)
-                preds = {
-                    v: plane.positive[tfcc_views[v].index] & tfcc_views[v].covered for v in views
-                }
+                preds = {v: mask_of(plane, tfcc_views[v]) for v in views}
                 sel = select(field, plane)
             else:
                 field, renderer = fields["direct"], renderers["direct"]
@@ -293,8 +294,7 @@ def run_eval(
                     info = {k: rec[k] for k in ("res_iou_init", "res_iou", "steps_run")}
                     info["fit_views"] = [c.name for c, _ in chosen]
                 preds = {v: direct_views[v].scores(field, W, b) > 0 for v in views}
-                seen = np.any(field.features != 0, axis=1)
-                sel = seen & (field.decode_direct(field.features) @ W.astype(np.float32) + b > 0)
+                sel = field.seen & (direct_gaussians @ W.astype(np.float32) + b > 0)
             scores = {v: image_scores(preds[v], gts[v]) for v in views}
             entry: dict = {
                 "text": p.text,

@@ -99,6 +99,12 @@ class Field:
     direct: bool = False  # the without-TFCC ablation: no codebook lookup
     ply_sha256: str = ""  # the PLY it was fitted for
 
+    @property
+    def seen(self) -> np.ndarray:
+        """[G] bool: Gaussians some training view saw. The others keep their zero initial
+        feature, and what it decodes to says nothing about them."""
+        return np.any(self.features != 0, axis=1)
+
     def check_scene(self, ply_sha256: str, where: str) -> None:
         """Refuse to use the field with another PLY than the one it was fitted on."""
         if self.ply_sha256 and self.ply_sha256 != ply_sha256:

@@ -354,8 +354,9 @@ def fit_hyperplane(
             f"{masks.source}: the RES masks of views {', '.join(c.name for c, _ in chosen)} "
             "cover no rendered pixel of the scene"
         )
-    W, b, rec = fit_osh(counts, renderer.field.unit_codebook(), text, o)
-    scores = (renderer.field.unit_codebook().astype(np.float64) @ W + b).astype(np.float32)
+    unit = renderer.field.unit_codebook().astype(np.float64)  # [N, D]
+    W, b, rec = fit_osh(counts, unit, text, o)
+    scores = (unit @ W + b).astype(np.float32)
     info = {
         "text_source": text_source,
         "mask_source": masks.source,

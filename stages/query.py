@@ -13,11 +13,17 @@ from pathlib import Path
 from stages.artifacts import input_digest
 from stages.errors import GoiError
 from stages.field import load_field_for
-from stages.hyperplane import HyperplaneOptions, ResFiles, ResModel, fit_hyperplane
-from stages.masks import MODES, MaskOptions, default_cameras, plane_for, render_masks
+from stages.hyperplane import (
+    HyperplaneOptions,
+    ResFiles,
+    ResModel,
+    fit_hyperplane,
+    threshold_plane,
+)
+from stages.masks import MODES, MaskOptions, default_cameras, render_masks
 from stages.prompts import check_prompt, safe_name, text_embedding
 from stages.scene import Scene
-from stages.selection import ExportOptions, export_ply, load_selection, select, write_selection
+from stages.selection import ExportOptions, Selection, export_ply, select, write_selection
 from stages.semantic_render import SemanticRenderer
 
 EXPORTS = ("subset", "invert", "highlight", "none")
@@ -90,10 +96,7 @@ def run_query(
             renderer, field_path, train, prompt, text, text_source, source, hp, report
         )
     else:
-        from stages.hyperplane import threshold_plane
-
         plane, cached = threshold_plane(prompt, text, field, hp.threshold), True
-    plane = plane_for(plane, q.mode, field, hp.threshold)
     pdir = out / safe_name(prompt)
     masks = render_masks(
         renderer, plane, cams, MaskOptions(out=pdir / "masks", mode="hyperplane", force=True)
@@ -112,5 +115,6 @@ def run_query(
             force=True,
         )
         if sel.any() or q.export != "subset":
-            ply, _ = export_ply(scene.gaussians, load_selection(sel_path), scene.ply_digest(), eo)
+            selection = Selection(sel, prompt, q.mode, scene.ply_digest())
+            ply, _ = export_ply(scene.gaussians, selection, scene.ply_digest(), eo)
     return QueryResult(prompt, pdir, cached, masks, sel_path, ply, int(sel.sum()), dict(plane.info))

@@ -26,8 +26,7 @@ SCHEMA = "goi.selection"
 
 def select(field: Field, plane: Hyperplane) -> np.ndarray:
     """[G] bool: the Gaussians of interest."""
-    seen = np.any(field.features != 0, axis=1)
-    return seen & plane.positive[field.decode_index(field.features)]
+    return field.seen & plane.positive[field.decode_index(field.features)]
 
 
 @dataclass
@@ -87,21 +86,24 @@ def parse_color(text: str) -> np.ndarray:
         return np.asarray(_NAMED[t], np.float32)
     if re.fullmatch(r"#[0-9a-f]{6}", t):
         return np.asarray([int(t[i : i + 2], 16) / 255 for i in (1, 3, 5)], np.float32)
-    try:
-        v = np.asarray([float(x) for x in t.split(",")], np.float64)
-    except ValueError:
-        v = np.zeros(0)
-    if v.shape == (3,) and np.all(np.isfinite(v)) and v.min() >= 0:
+    v = _three_numbers(t)
+    if v is not None and v.min() >= 0:
         return np.asarray(v / 255 if v.max() > 1 else v, np.float32)
     raise GoiError(f"--highlight: {text!r} is not a colour (a name like red, #rrggbb, or r,g,b)")
 
 
-def parse_vector(text: str, option: str) -> np.ndarray:
+def _three_numbers(text: str) -> np.ndarray | None:
+    """'a,b,c' -> [3] finite float64, else None."""
     try:
         v = np.asarray([float(x) for x in text.split(",")], np.float64)
     except ValueError:
-        v = np.zeros(0)
-    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        return None
+    return v if v.shape == (3,) and np.all(np.isfinite(v)) else None
+
+
+def parse_vector(text: str, option: str) -> np.ndarray:
+    v = _three_numbers(text)
+    if v is None:
         raise GoiError(f"{option}: {text!r} is not three numbers DX,DY,DZ")
     return v
 
