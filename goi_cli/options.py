@@ -11,9 +11,12 @@ import types
 import typing
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
+
+if TYPE_CHECKING:
+    from stages.scene.scene import Scene
 
 
 def field_docs(cls: type) -> dict[str, str]:
@@ -81,6 +84,10 @@ def dataclass_options(cls: type, skip: tuple[str, ...] = ()) -> Callable:
     return decorate
 
 
+#: An existing file (click checks it before the command runs).
+EXISTING = click.Path(exists=True, dir_okay=False, path_type=Path)
+
+
 def build(cls: type, kwargs: dict[str, Any]) -> Any:
     """The options object from the parsed keyword arguments (removing them from kwargs)."""
     names = {f.name for f in dataclasses.fields(cls)}
@@ -124,8 +131,9 @@ scene_options = stack(
 )
 
 
-def load_scene_from(kwargs: dict[str, Any]):  # noqa: ANN201
-    from stages.scene import load_scene
+def load_scene_from(kwargs: dict[str, Any]) -> Scene:
+    """The scene named by scene_options (removing those options from kwargs)."""
+    from stages.scene.scene import load_scene
 
     return load_scene(
         kwargs.pop("scene"), kwargs.pop("ply"), kwargs.pop("cameras"), kwargs.pop("images")

@@ -22,7 +22,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from stages.errors import GoiError
+from stages.core.errors import GoiError
 
 PROVENANCE_ATTRS = ("goi_version", "command", "created", "inputs")
 #: A dataset declaring more than this is refused before anything is read: HDF5 can declare a

@@ -37,7 +37,7 @@ def main() -> int:
     ap.add_argument("--tools", type=Path, default=ROOT.parent / "shared" / "tools")
     a = ap.parse_args()
     sys.path.insert(0, str(ROOT))
-    from stages.gaussians import load_ply, save_ply, vertex_fields
+    from stages.scene.gaussians import load_ply, save_ply, vertex_fields
 
     room = a.room
     split = json.loads((room / "split.json").read_text())

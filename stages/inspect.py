@@ -11,8 +11,8 @@ import h5py
 import numpy as np
 
 from schemas import validate_file
-from stages.errors import GoiError
-from stages.gaussians import load_ply
+from stages.core.errors import GoiError
+from stages.scene.gaussians import load_ply
 
 
 def inspect_ply(path: Path) -> tuple[list[str], list[str]]:

@@ -1,0 +1,287 @@
+"""`goi eval`: the whole pipeline on a benchmark room, scored as the paper scores it.
+
+Every stage is the function the other commands use; the field never sees a test view. The steps:
+import the features and fit the codebook, fit the fields the chosen variants need, render the
+test views once per field, answer every prompt with every variant, score the answers against
+the ground truth (2D on the test views, 3D against gaussian_ids.npy), and write report.json
+(schema goi.eval) and the HTML page.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stages import __version__
+from stages.core.artifacts import command_line, write_json
+from stages.core.errors import GoiError
+from stages.core.report import SILENT, Report
+from stages.evaluation.metrics import Scores, image_scores, iou_3d, mean_scores
+from stages.evaluation.room import Prompt, Room, load_room
+from stages.evaluation.variants import (
+    FIELD_KIND,
+    VARIANTS,
+    DirectModel,
+    Prediction,
+    TfccModel,
+    render_direct,
+)
+from stages.query.hyperplanes import HyperplaneRun
+from stages.query.osh import THRESHOLD, HyperplaneParams
+from stages.query.res import ResFiles
+from stages.render.rasterizer import Rasterizer
+from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
+from stages.semantics.decode import SemanticRenderer
+from stages.semantics.extract import ExtractParams, ExtractRun, import_features
+from stages.semantics.field import load_field
+from stages.semantics.field_model import FieldParams
+from stages.semantics.fit_field import FieldRun, fit_field
+
+
+@dataclass
+class EvalParams:
+    iterations: int = 1500
+    """fit-field iterations for each field (paper: 1500)."""
+    entries: int = 300
+    """Codebook entries (paper: 300)."""
+    threshold: float = THRESHOLD
+    """The fixed cosine threshold (goi's default; not to be tuned on test masks)."""
+    seed: int = 0
+    """Random seed of every stage."""
+
+
+@dataclass
+class EvalRun:
+    out: Path
+    """report.json to write (schema goi.eval)."""
+    html: Path | None = None
+    """Also write an HTML report (overlays per prompt and view, metrics, timings)."""
+    work: Path | None = None
+    """Directory for the intermediate artifacts (default: <out without .json>.work)."""
+    text_embeddings: Path | None = None
+    """Prompt embeddings JSON (default: the room's text_embeddings.json)."""
+    variants: str = ",".join(VARIANTS)
+    """Comma-separated variants to run."""
+    force: bool = False
+    """Overwrite existing report files."""
+
+
+@dataclass
+class EvalResult:
+    report: dict  # what report.json holds
+    out: Path
+    html: Path | None
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.t: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        yield
+        self.add(stage, time.perf_counter() - t0)
+
+    def add(self, stage: str, seconds: float) -> None:
+        self.t[stage] = round(self.t.get(stage, 0.0) + seconds, 2)
+
+
+def _chosen_variants(text: str) -> list[str]:
+    variants = [v.strip() for v in text.split(",") if v.strip()]
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad or not variants:
+        raise GoiError(
+            f"--variants: {', '.join(bad) or '(none)'}; choose from {', '.join(VARIANTS)}"
+        )
+    return variants
+
+
+def _fit_models(
+    room: Room,
+    features: Path,
+    work: Path,
+    variants: list[str],
+    p: EvalParams,
+    timer: _Timer,
+    report: Report,
+) -> tuple[TfccModel | None, DirectModel | None]:
+    """Features, codebook and the fields the variants need, with their test views rendered."""
+    scene = room.scene
+    with timer("extract"):
+        feats = import_features(
+            scene, features, ExtractParams(), ExtractRun(work / "features.h5", force=True), report
+        )
+    with timer("init_codebook"):
+        cb = init_codebook(
+            feats,
+            CodebookParams(entries=p.entries, seed=p.seed),
+            CodebookRun(work / "codebook.h5", force=True),
+            report,
+        )
+    kinds = {FIELD_KIND[v] for v in variants}
+    fitted = {}
+    for kind in ("tfcc", "direct"):
+        if kind not in kinds:
+            continue
+        report.log(f"eval: fit-field ({kind}, {p.iterations} iterations)")
+        fp = FieldParams(iterations=p.iterations, no_tfcc=kind == "direct", seed=p.seed)
+        run = FieldRun(
+            work / f"field_{kind}.h5", cache=work / "blend_cache.h5", checkpoint_every=0, force=True
+        )
+        with timer(f"fit_field_{kind}"):
+            fitted[kind] = fit_field(scene, feats, cb, fp, run, report)
+    test = scene.views("test")
+    tfcc = direct = None
+    with timer("render_test_views"):
+        if "tfcc" in fitted:
+            field = load_field(fitted["tfcc"])
+            renderer = SemanticRenderer(scene.gaussians, field)
+            views = {c.name: renderer.render(c, with_rgb=True) for c in test}
+            tfcc = TfccModel(field, fitted["tfcc"], renderer, views)
+        if "direct" in fitted:
+            field = load_field(fitted["direct"])
+            renderer = SemanticRenderer(scene.gaussians, field)
+            dviews = {c.name: render_direct(renderer, c) for c in test}
+            # every prompt scores the same decoded Gaussians
+            direct = DirectModel(field, renderer, dviews, field.decode_direct(field.features))
+    return tfcc, direct
+
+
+def _visibility(room: Room) -> np.ndarray:
+    """[G] each Gaussian's blending weight summed over the training views."""
+    rast = Rasterizer.from_gaussians(room.scene.gaussians)
+    total = np.zeros(room.scene.gaussians.count)
+    for cam in room.scene.views("train"):
+        total += rast.contribution(cam)
+    return total
+
+
+def _score(
+    pred: Prediction,
+    gts: dict[str, np.ndarray],
+    target: np.ndarray | None,
+    weight: np.ndarray | None,
+) -> dict:
+    """The report entry of one prompt and variant (without text, timing and fit record)."""
+    scores = {v: image_scores(pred.masks[v], gt) for v, gt in gts.items()}
+    entry: dict = {
+        "n_test_views": len(gts),
+        **(mean_scores(list(scores.values())).as_dict() if gts else {}),
+        "views": {v: s.as_dict() for v, s in scores.items()},
+        "n_selected": int(pred.selected.sum()),
+    }
+    if target is not None:
+        entry["iou_3d"] = iou_3d(pred.selected, target)
+        entry["iou_3d_visible"] = iou_3d(pred.selected, target, weight)
+    return entry
+
+
+def _summarise(variant_report: dict, with_3d: bool) -> None:
+    """Add the variant's means over prompts (a prompt without test views is listed only)."""
+    entries = variant_report["prompts"].values()
+    scored = [e for e in entries if e["n_test_views"]]
+    agg = mean_scores([Scores(e["iou"], e["mpa"], e["mp"]) for e in scored]) if scored else None
+    variant_report.update(
+        {
+            "miou": agg.iou if agg else None,
+            "mpa": agg.mpa if agg else None,
+            "mp": agg.mp if agg else None,
+        }
+    )
+    if with_3d:
+        variant_report["miou_3d"] = float(np.mean([e["iou_3d"] for e in entries]))
+        variant_report["miou_3d_visible"] = float(np.mean([e["iou_3d_visible"] for e in entries]))
+    variant_report["prompts"] = variant_report.pop("prompts")  # keep the means first
+
+
+def run_eval(
+    room_dir: Path,
+    features: Path,
+    res: Path,
+    p: EvalParams,
+    run: EvalRun,
+    report: Report = SILENT,
+) -> EvalResult:
+    """Run every variant on the room and write report.json (and the HTML page)."""
+    variants = _chosen_variants(run.variants)
+    for path in (run.out, run.html):
+        if path is not None and Path(path).exists() and not run.force:
+            raise GoiError(f"{path}: already exists; pass --force to overwrite it")
+    room = load_room(Path(room_dir), run.text_embeddings)
+    work = Path(run.work or Path(run.out).with_suffix(".work"))
+    work.mkdir(parents=True, exist_ok=True)
+    timer = _Timer()
+    scene = room.scene
+    report.log(
+        f"eval: room {room.dir} ({scene.gaussians.count} Gaussians, {len(room.prompts)} prompts)"
+    )
+    tfcc, direct = _fit_models(room, features, work, variants, p, timer, report)
+    with timer("contribution_3d"):
+        weight = _visibility(room) if room.gaussian_ids is not None else None
+    test = {c.name for c in scene.views("test")}
+    train = scene.views("train")
+    hp = HyperplaneParams(threshold=p.threshold)
+    planes = HyperplaneRun(work / "hyperplanes.h5", refit=True)
+    doc: dict = {
+        "schema": "goi.eval",
+        "schema_version": "1.0",
+        "goi_version": __version__,
+        "command": command_line(),
+        "room": str(room.dir),
+        "threshold": p.threshold,
+        "metric_notes": {
+            "2d": "per test image IoU, mPA, mP; mean over a prompt's images, then over prompts",
+            "miou_3d": "IoU of selected vs target Gaussians, each Gaussian counted once",
+            "miou_3d_visible": "the same, each Gaussian weighted by its blending weight summed "
+            "over the training views (hidden Gaussians count for nothing)",
+        },
+        "variants": {v: {"prompts": {}} for v in variants},
+        "timings_s": timer.t,
+    }
+    figures: dict[str, dict[str, list]] = {v: {} for v in variants}
+    for prompt in report.progress(room.prompts, "eval prompts", show=_prompt_id):
+        text = room.embeddings[prompt.text]
+        source = ResFiles(Path(res), prompt.id, prompt.text)
+        views = [v for v in prompt.test_views if v in test]
+        gts = {v: room.ground_truth(prompt, v) for v in views}
+        for variant in variants:
+            t0 = time.perf_counter()
+            if FIELD_KIND[variant] == "tfcc":
+                assert tfcc is not None
+                pred = tfcc.predict(variant, prompt.text, text, source, train, hp, planes, views)
+            else:
+                assert direct is not None
+                pred = direct.predict(variant, text, source, train, hp, views, p.seed)
+            entry = {
+                "text": prompt.text,
+                "kind": prompt.kind,
+                **_score(pred, gts, room.targets(prompt), weight),
+                "seconds": round(time.perf_counter() - t0, 3),
+                **pred.info,
+            }
+            doc["variants"][variant]["prompts"][prompt.id] = entry
+            timer.add(f"query_{variant}", entry["seconds"])
+            figures[variant][prompt.id] = [pred.masks, gts]
+    for variant in variants:
+        _summarise(doc["variants"][variant], room.gaussian_ids is not None)
+    from schemas import validate_json
+
+    if run.html is not None:
+        from stages.evaluation.report import eval_page
+
+        with timer("html"):  # doc["timings_s"] is timer.t: the page's own time lands too
+            views_rgb = tfcc.views if tfcc is not None else {}
+            eval_page(Path(run.html), doc, room.prompts, figures, views_rgb, scene)
+    validate_json(doc, "goi.eval", str(run.out))  # what we write, our reader must accept
+    write_json(run.out, doc, force=True)
+    return EvalResult(doc, Path(run.out), run.html)
+
+
+def _prompt_id(p: Prompt | None) -> str | None:
+    return p.id if p else None

@@ -1,0 +1,127 @@
+"""HTML pages: the eval report and the demo's index. Every user-supplied string (prompts, view
+and file names, paths) goes through html.escape; images are PNG files beside the page, linked
+by safe names."""
+
+from __future__ import annotations
+
+import html
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stages.core.artifacts import atomic_path, write_png
+from stages.core.errors import GoiError
+from stages.query.masks import overlay
+from stages.query.prompts import safe_name, view_file_name
+from stages.scene.images import read_rgb
+
+STYLE = """
+body{font-family:system-ui,sans-serif;margin:24px;color:#222;max-width:1400px}
+table{border-collapse:collapse;margin:8px 0 18px}
+td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}
+th{background:#f3f3f3} td.l,th.l{text-align:left}
+figure{display:inline-block;margin:4px;text-align:center;font-size:12px}
+figure img{width:260px;display:block}
+.key{font-size:13px;color:#555}
+"""
+
+
+def esc(x: Any) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def fmt(x: Any) -> str:
+    return "-" if x is None else f"{x:.4f}" if isinstance(x, float) else esc(x)
+
+
+def write_page(path: Path, title: str, body: str) -> None:
+    doc = (
+        f"<!doctype html><html><head><meta charset='utf-8'><title>{esc(title)}</title>"
+        f"<style>{STYLE}</style></head><body><h1>{esc(title)}</h1>{body}</body></html>\n"
+    )
+    with atomic_path(path, force=True) as tmp:
+        tmp.write_text(doc, encoding="utf-8")
+
+
+def overlay_pair(rgb: np.ndarray, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Prediction tinted red; ground truth outlined in green. [H, W, 3] uint8."""
+    import cv2
+
+    if pred.shape != rgb.shape[:2]:
+        pred = cv2.resize(pred.astype(np.uint8), rgb.shape[1::-1], interpolation=0).astype(bool)
+    return overlay(rgb, pred, outline=gt, outline_color=(40, 230, 60), width=2)
+
+
+def _background(scene: Any, view: str, rendered: dict) -> np.ndarray:
+    """The room's photo of a view, else goi's own rendering of it (a room without images/)."""
+    try:
+        return read_rgb(scene.image_path(scene.camera(view)))
+    except GoiError:
+        if view in rendered and rendered[view].rgb is not None:
+            return rendered[view].rgb
+        raise
+
+
+def rel(path: Path, page: Path) -> str:
+    return esc(Path(os.path.relpath(path, page.parent)).as_posix())
+
+
+def eval_page(
+    path: Path, report: dict, prompts: list, figures: dict, tfcc_views: dict, scene: Any
+) -> None:
+    """The eval report: metrics per variant and prompt, timings, and every test view's
+    prediction (red) against the ground truth (green outline), one row per variant."""
+    files = path.with_name(path.stem + "_files")
+    files.mkdir(parents=True, exist_ok=True)
+    variants = list(report["variants"])
+    body = [
+        f"<p class='key'>room {esc(report['room'])} · fixed threshold {fmt(report['threshold'])}"
+        f" · goi {esc(report['goi_version'])}</p><h2>Metrics</h2><table><tr><th class='l'>variant"
+        "</th><th>mIoU</th><th>mPA</th><th>mP</th><th>mIoU 3D</th><th>mIoU 3D (visible)</th></tr>"
+    ]
+    for v in variants:
+        r = report["variants"][v]
+        body.append(
+            f"<tr><td class='l'>{esc(v)}</td><td>{fmt(r['miou'])}</td><td>{fmt(r['mpa'])}</td>"
+            f"<td>{fmt(r['mp'])}</td><td>{fmt(r.get('miou_3d'))}</td>"
+            f"<td>{fmt(r.get('miou_3d_visible'))}</td></tr>"
+        )
+    body.append(
+        "</table><h2>Per prompt (IoU)</h2><table><tr><th class='l'>id</th>"
+        "<th class='l'>prompt</th>" + "".join(f"<th>{esc(v)}</th>" for v in variants) + "</tr>"
+    )
+    for p in prompts:
+        cells = "".join(
+            f"<td>{fmt(report['variants'][v]['prompts'][p.id].get('iou'))}</td>" for v in variants
+        )
+        body.append(
+            f"<tr><td class='l'>{esc(p.id)}</td><td class='l'>{esc(p.text)}</td>{cells}</tr>"
+        )
+    body.append("</table><h2>Timings (s)</h2><table>")
+    for k, t in report["timings_s"].items():
+        body.append(f"<tr><td class='l'>{esc(k)}</td><td>{fmt(float(t))}</td></tr>")
+    body.append(
+        "</table><h2>Test views</h2><p class='key'>red: predicted mask; green outline: "
+        "ground truth. Rows: variants.</p>"
+    )
+    for p in prompts:
+        body.append(f"<h3>{esc(p.id)}: {esc(p.text)}</h3>")
+        for v in variants:
+            preds, gts = figures[v][p.id]
+            if not preds:
+                body.append(f"<p class='key'>{esc(v)}: no test view</p>")
+                continue
+            body.append(f"<div><b>{esc(v)}</b><br>")
+            for view, pred in preds.items():
+                rgb = _background(scene, view, tfcc_views)
+                name = f"{safe_name(p.id)}_{safe_name(v)}_{view_file_name(view)}.png"
+                write_png(files / name, overlay_pair(rgb, pred, gts[view]), force=True)
+                iou = report["variants"][v]["prompts"][p.id]["views"][view]["iou"]
+                body.append(
+                    f"<figure><img src='{rel(files / name, path)}' alt='{esc(view)}'>"
+                    f"{esc(view)} IoU {iou:.3f}</figure>"
+                )
+            body.append("</div>")
+    write_page(path, f"goi eval: {Path(report['room']).name}", "".join(body))

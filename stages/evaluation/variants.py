@@ -1,0 +1,145 @@
+"""The paper's ablation variants, each a way to answer a prompt from a fitted field:
+
+  full          TFCC field + hyperplane fitted on the RES masks
+  without_osh   TFCC field + the fixed cosine threshold
+  without_tfcc  field decoded straight to the feature space (no codebook) + hyperplane
+  baseline      field decoded straight to the feature space + the fixed threshold
+
+The fixed threshold is goi's one documented default (stages.query.osh.THRESHOLD) for every
+prompt and room; it is never tuned on test masks.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
+from stages.query.masks import mask_of
+from stages.query.osh import Counts, HyperplaneParams, fit_osh, threshold_plane
+from stages.query.res import ResFiles, choose_views
+from stages.query.selection import select
+from stages.scene.cameras import Camera
+from stages.semantics.decode import COVERED_ALPHA, DecodedView, SemanticRenderer
+from stages.semantics.field import Field
+
+VARIANTS = ("full", "without_osh", "without_tfcc", "baseline")
+#: Which field each variant needs: "tfcc" (the paper's) or "direct" (fit-field --no-tfcc).
+FIELD_KIND = {"full": "tfcc", "without_osh": "tfcc", "without_tfcc": "direct", "baseline": "direct"}
+#: Pixels per fitting view the per-pixel (without-TFCC) hyperplane is fitted on.
+DIRECT_FIT_PIXELS = 20_000
+
+
+@dataclass
+class Prediction:
+    masks: dict[str, np.ndarray]  # test view -> [H, W] bool
+    selected: np.ndarray  # [G] bool, the Gaussians of interest
+    info: dict = field(default_factory=dict)  # how the answer was reached (fit record)
+
+
+@dataclass
+class DirectView:
+    """A test or fitting view of a --no-tfcc field: rendered features, decoded per prompt."""
+
+    f_hat: np.ndarray  # [M, S] covered pixels only
+    covered: np.ndarray  # [H, W] bool
+
+    def scores(self, field: Field, W: np.ndarray, b: float) -> np.ndarray:
+        """[H, W] W x + b of each covered pixel's decoded feature (-inf elsewhere)."""
+        out = np.full(self.covered.shape, -np.inf, np.float32)
+        out[self.covered] = field.decode_direct(self.f_hat) @ W.astype(np.float32) + b
+        return out
+
+
+def render_direct(renderer: SemanticRenderer, cam: Camera) -> DirectView:
+    r = renderer.rast.render_features(cam, renderer.field.features)
+    covered = r.alpha > COVERED_ALPHA
+    return DirectView(r.image[covered], covered)
+
+
+def fit_direct_plane(
+    renderer: SemanticRenderer,
+    chosen: list[tuple[Camera, np.ndarray]],
+    text: np.ndarray,
+    p: HyperplaneParams,
+    seed: int,
+) -> tuple[np.ndarray, float, dict]:
+    """The OSH on a field without codebook: every sampled pixel is its own point."""
+    rng = np.random.default_rng(seed)
+    xs, ys = [], []
+    for cam, m in chosen:
+        v = render_direct(renderer, cam)
+        y = m[v.covered]
+        take = rng.permutation(len(y))[:DIRECT_FIT_PIXELS]
+        xs.append(renderer.field.decode_direct(v.f_hat[take]))
+        ys.append(y[take])
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    return fit_osh(Counts(y.astype(np.float64), (~y).astype(np.float64)), x, text, p)
+
+
+def _fit_record(rec: dict, views: list[str]) -> dict:
+    return {**{k: rec[k] for k in ("res_iou_init", "res_iou", "steps_run")}, "fit_views": views}
+
+
+@dataclass
+class TfccModel:
+    """The paper's field, with the test views rendered and decoded once for every prompt."""
+
+    field: Field
+    path: Path
+    renderer: SemanticRenderer
+    views: dict[str, DecodedView]  # test view -> decoded render (with RGB, for the pages)
+
+    def predict(
+        self,
+        variant: str,
+        prompt: str,
+        text: np.ndarray,
+        source: ResFiles,
+        train: list[Camera],
+        hp: HyperplaneParams,
+        planes: HyperplaneRun,
+        views: list[str],
+    ) -> Prediction:
+        info: dict = {}
+        if variant == "full":
+            plane, _ = fit_hyperplane(
+                self.renderer, self.path, train, prompt, text, "eval", source, hp, planes
+            )
+            info = _fit_record(plane.info, json.loads(plane.info["views"]))
+        else:
+            plane = threshold_plane(prompt, text, self.field.unit_codebook(), hp.threshold)
+        masks = {v: mask_of(plane, self.views[v]) for v in views}
+        return Prediction(masks, select(self.field, plane), info)
+
+
+@dataclass
+class DirectModel:
+    """The without-TFCC field: features decoded straight to the D-dim space."""
+
+    field: Field
+    renderer: SemanticRenderer
+    views: dict[str, DirectView]  # test view -> rendered features
+    gaussians: np.ndarray  # [G, D] each Gaussian's decoded unit feature
+
+    def predict(
+        self,
+        variant: str,
+        text: np.ndarray,
+        source: ResFiles,
+        train: list[Camera],
+        hp: HyperplaneParams,
+        views: list[str],
+        seed: int,
+    ) -> Prediction:
+        W, b, info = text.astype(np.float64), -hp.threshold, {}
+        if variant == "without_tfcc":
+            chosen = choose_views(source, train, hp)
+            W, b, rec = fit_direct_plane(self.renderer, chosen, text, hp, seed)
+            info = _fit_record(rec, [c.name for c, _ in chosen])
+        masks = {v: self.views[v].scores(self.field, W, b) > 0 for v in views}
+        selected = self.field.seen & (self.gaussians @ W.astype(np.float32) + b > 0)
+        return Prediction(masks, selected, info)

@@ -1,0 +1,155 @@
+"""The hyperplanes artifact (schema goi.hyperplanes) and `goi fit-hyperplane`.
+
+Each prompt's plane is stored with W, b, the text embedding and one score per codebook entry,
+keyed by prompt, together with a fit key (field, text, masks, options): the same prompt with
+the same field, masks and options is never refitted, and a cache hit decodes no mask.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from stages.core.artifacts import atomic_path, open_h5, put, sha256_file, stamp
+from stages.core.errors import GoiError
+from stages.core.report import SILENT, Report
+from stages.query.osh import Counts, Hyperplane, HyperplaneParams, count_pixels, fit_osh
+from stages.query.prompts import safe_name
+from stages.query.res import ResSource, choose_views
+from stages.scene.cameras import Camera
+from stages.semantics.decode import SemanticRenderer
+
+SCHEMA = "goi.hyperplanes"
+
+
+@dataclass
+class HyperplaneRun:
+    out: Path
+    """Hyperplanes artifact (HDF5, schema goi.hyperplanes): created, or the prompt is added to
+    it. A prompt already fitted with the same field, masks and options is reused as it is."""
+    refit: bool = False
+    """Fit again even when the artifact already holds this prompt."""
+
+
+def field_key(field_path: Path) -> str:
+    return sha256_file(field_path)
+
+
+def _fit_key(field_sha: str, text: np.ndarray, mask_digest: str, p: HyperplaneParams) -> str:
+    h = hashlib.sha256()
+    h.update(field_sha.encode())
+    h.update(np.ascontiguousarray(text, np.float32).tobytes())
+    h.update(mask_digest.encode())
+    h.update(json.dumps(p.config(), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def read_hyperplanes(path: str | os.PathLike[str]) -> dict[str, Hyperplane]:
+    """Every prompt of a hyperplanes artifact, keyed by prompt text."""
+    out = {}
+    with open_h5(path, SCHEMA) as f:
+        for key, g in f.get("prompts", {}).items():
+            info = {k: (v.item() if hasattr(v, "item") else v) for k, v in g.attrs.items()}
+            info["key"] = key
+            out[str(g.attrs["prompt"])] = Hyperplane(
+                str(g.attrs["prompt"]),
+                g["W"][()],
+                float(g.attrs["b"]),
+                g["entry_scores"][()],
+                g["text_embedding"][()],
+                info,
+            )
+    return out
+
+
+def _write(path: Path, planes: dict[str, Hyperplane], inputs: dict[str, str]) -> None:
+    with atomic_path(path, force=True) as tmp, h5py.File(tmp, "w", track_order=True) as f:
+        stamp(f, SCHEMA, inputs)
+        root = f.create_group("prompts", track_order=True)
+        for prompt in sorted(planes):
+            p = planes[prompt]
+            g = root.create_group(safe_name(prompt))
+            g.attrs["prompt"] = prompt
+            g.attrs["b"] = float(p.b)
+            for k, v in p.info.items():
+                if k not in ("key", "prompt", "b"):
+                    g.attrs[k] = v
+            put(g, "W", p.W.astype(np.float32))
+            put(g, "entry_scores", p.scores.astype(np.float32))
+            put(g, "text_embedding", p.text.astype(np.float32))
+
+
+def fit_hyperplane(
+    renderer: SemanticRenderer,
+    field_path: Path,
+    cams: list[Camera],
+    prompt: str,
+    text: np.ndarray,
+    text_source: str,
+    masks: ResSource,
+    p: HyperplaneParams,
+    run: HyperplaneRun,
+    report: Report = SILENT,
+) -> tuple[Hyperplane, bool]:
+    """Fit (or reuse) the prompt's plane and store it in run.out; returns it and whether it
+    came from the artifact."""
+    p.check()
+    out = Path(run.out)
+    existing = read_hyperplanes(out) if out.exists() else {}
+    field_sha = field_key(field_path)
+    # The key covers every candidate mask file, so a hit needs no mask decoded at all.
+    key = _fit_key(field_sha, text, masks.digest(masks.available(cams)), p)
+    old = existing.get(prompt)
+    if old is not None and old.info.get("fit_key") == key and not run.refit:
+        return old, True
+    chosen = choose_views(masks, cams, p)
+    n = renderer.field.codebook.shape[0]
+    counts = Counts(np.zeros(n), np.zeros(n))
+    for cam, m in chosen:
+        view = renderer.render(cam)
+        c = count_pixels(view.index, view.covered, m, n)
+        counts.pos += c.pos
+        counts.neg += c.neg
+    if counts.pos.sum() == 0:
+        raise GoiError(
+            f"{masks.source}: the RES masks of views {', '.join(c.name for c, _ in chosen)} "
+            "cover no rendered pixel of the scene"
+        )
+    unit = renderer.field.unit_codebook().astype(np.float64)  # [N, D]
+    W, b, rec = fit_osh(counts, unit, text, p)
+    scores = (unit @ W + b).astype(np.float32)
+    info = {
+        "text_source": text_source,
+        "mask_source": masks.source,
+        "views": json.dumps([c.name for c, _ in chosen]),
+        "field_sha256": field_sha,
+        "fit_key": key,
+        "config": json.dumps(p.config(), sort_keys=True),
+        **rec,
+    }
+    plane = Hyperplane(prompt, W.astype(np.float32), b, scores, text.astype(np.float32), info)
+    report.log(
+        f"fitted on {', '.join(c.name for c, _ in chosen)}: IoU with the RES mask "
+        f"{rec['res_iou_init']:.3f} -> {rec['res_iou']:.3f} in {rec['steps_run']} steps"
+    )
+    planes = {k: v for k, v in existing.items() if k != prompt}
+    planes[prompt] = plane
+    _write(out, planes, {"field": field_sha})
+    return plane, False
+
+
+def load_plane(path: Path, prompt: str) -> Hyperplane:
+    planes = read_hyperplanes(path)
+    if prompt not in planes:
+        listed = ", ".join(repr(p[:40]) for p in sorted(planes)[:5])
+        raise GoiError(
+            f"{path}: no hyperplane for prompt {prompt[:80]!r} (it holds {listed or 'none'}); "
+            "run goi fit-hyperplane first"
+        )
+    return planes[prompt]

@@ -1,0 +1,143 @@
+"""`goi query --prompt TEXT`: fit the hyperplane unless cached, render masks, select, export.
+
+The output directory holds hyperplanes.h5, the prompt cache shared by every query on the same
+field, and one directory per prompt (a safe name of it): masks/, selection.h5 and <name>.ply.
+A query overwrites its own prompt's outputs, so re-running it is always safe.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from stages.core.artifacts import input_digest
+from stages.core.errors import check_choice
+from stages.core.report import SILENT, Report
+from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply
+from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
+from stages.query.masks import MODES, MaskParams, MaskRun, default_cameras, render_masks
+from stages.query.osh import HyperplaneParams, threshold_plane
+from stages.query.prompts import check_prompt, safe_name, text_embedding
+from stages.query.res import res_source
+from stages.query.selection import Selection, select, write_selection
+from stages.scene.scene import Scene
+from stages.semantics.decode import SemanticRenderer
+from stages.semantics.field import load_field_for
+
+EXPORTS = ("subset", "invert", "highlight", "none")
+
+
+@dataclass
+class PromptSources:
+    """Where a prompt's embedding and RES masks come from."""
+
+    text_embeddings: Path | None = None
+    """JSON {text: [floats]} with the prompt's embedding (e.g. a room's text_embeddings.json)."""
+    bundle: Path | None = None
+    """Model bundle whose text encoder embeds the prompt (and whose res model, if any, makes
+    the RES masks)."""
+    res_masks: Path | None = None
+    """RES masks from any tool: DIR/<view>.png, or DIR/<prompt id>/<view>.png with --prompt-id
+    (default subdirectory: the prompt's safe name)."""
+    prompt_id: str | None = None
+    """Subdirectory of --res-masks holding this prompt's masks."""
+
+
+@dataclass
+class QueryParams:
+    mode: str = "hyperplane"
+    """hyperplane: fit the OSH with RES masks; threshold: the fixed threshold (no RES needed)."""
+
+
+@dataclass
+class QueryRun:
+    out: Path
+    """Output directory: hyperplanes.h5 (the prompt cache) and one directory per prompt."""
+    views: str | None = None
+    """Comma-separated views to render masks for (default: the test split, else all)."""
+    export: str = "subset"
+    """PLY to write: subset (the Gaussians of interest), invert (the scene without them),
+    highlight (the scene with them recoloured) or none."""
+    color: str = "red"
+    """Colour of --export highlight."""
+    refit: bool = False
+    """Fit the hyperplane again even when hyperplanes.h5 already holds this prompt."""
+
+
+@dataclass
+class QueryResult:
+    prompt: str
+    directory: Path
+    cached: bool
+    masks: list[Path]
+    selection: Path
+    ply: Path | None
+    n_selected: int
+    info: dict
+
+
+def run_query(
+    scene: Scene,
+    field_path: Path,
+    prompt: str,
+    sources: PromptSources,
+    hp: HyperplaneParams,
+    qp: QueryParams,
+    run: QueryRun,
+    renderer: SemanticRenderer | None = None,
+    report: Report = SILENT,
+) -> QueryResult:
+    prompt = check_prompt(prompt)
+    check_choice("--mode", qp.mode, MODES)
+    check_choice("--export", run.export, EXPORTS)
+    field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
+    renderer = renderer or SemanticRenderer(scene.gaussians, field)
+    text, text_source = text_embedding(
+        prompt, field.codebook.shape[1], sources.text_embeddings, sources.bundle
+    )
+    cams = default_cameras(scene, run.views)  # checked before any work
+    out = Path(run.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if qp.mode == "hyperplane":
+        masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
+        plane, cached = fit_hyperplane(
+            renderer,
+            field_path,
+            scene.views("train"),
+            prompt,
+            text,
+            text_source,
+            masks,
+            hp,
+            HyperplaneRun(out / "hyperplanes.h5", refit=run.refit),
+            report,
+        )
+    else:
+        plane = threshold_plane(prompt, text, field.unit_codebook(), hp.threshold)
+        cached = True
+    pdir = out / safe_name(prompt)
+    masks_written = render_masks(
+        renderer, plane, cams, MaskParams(), MaskRun(out=pdir / "masks", force=True), report
+    )
+    sel = select(field, plane)
+    inputs = {"ply": scene.ply_digest(), **input_digest("field", field_path)}
+    sel_path = write_selection(
+        pdir / "selection.h5", sel, plane, qp.mode, scene.ply_digest(), inputs, force=True
+    )
+    ply = None
+    if run.export != "none" and (sel.any() or run.export != "subset"):
+        edit = PlyEditParams(
+            invert=run.export == "invert",
+            highlight=run.color if run.export == "highlight" else None,
+        )
+        selection = Selection(sel, prompt, qp.mode, scene.ply_digest())
+        ply, _ = export_ply(
+            scene.gaussians,
+            selection,
+            scene.ply_digest(),
+            edit,
+            PlyExportRun(pdir / f"{safe_name(prompt)}.ply", force=True),
+        )
+    return QueryResult(
+        prompt, pdir, cached, masks_written, sel_path, ply, int(sel.sum()), dict(plane.info)
+    )

@@ -1,0 +1,100 @@
+"""Prompts: checking them, their embeddings, and the file names made from prompts and views.
+
+A prompt or a view name never becomes a path as it is: `safe_name` keeps a readable slug and
+adds a hash of the full text, so names stay inside the output directory, stay short, and two
+different texts never share a file. The original text is kept in the artifacts and reports.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from stages.core.artifacts import read_json
+from stages.core.errors import GoiError
+
+MAX_PROMPT_CHARS = 1000
+_SLUG = re.compile(r"[^a-z0-9]+")
+_PLAIN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
+
+
+def check_prompt(text: str, option: str = "--prompt") -> str:
+    """The prompt with surrounding blanks removed; empty, huge or binary prompts are refused."""
+    t = text.strip()
+    if not t:
+        raise GoiError(f"{option}: the prompt is empty")
+    if len(t) > MAX_PROMPT_CHARS:
+        raise GoiError(f"{option}: the prompt has {len(t)} characters; at most {MAX_PROMPT_CHARS}")
+    if any(ord(c) < 32 and c not in "\t" for c in t):
+        raise GoiError(f"{option}: the prompt contains control characters (NUL, newline, ...)")
+    return t
+
+
+def safe_name(text: str, max_slug: int = 40) -> str:
+    """A file-name-safe, collision-free name for any text: `<slug>-<8 hex of its SHA-256>`."""
+    slug = _SLUG.sub("-", text.lower()).strip("-")[:max_slug].strip("-") or "x"
+    return f"{slug}-{hashlib.sha256(text.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"
+
+
+def view_file_name(view: str) -> str:
+    """A view's name as a file stem: itself when plain (v000, IMG_12.JPG), else safe_name."""
+    return view if _PLAIN.fullmatch(view) and ".." not in view else safe_name(view)
+
+
+def load_text_embeddings(path: Path) -> dict[str, np.ndarray]:
+    """`{text: [floats]}` -> unit vectors; every entry is checked."""
+    raw = read_json(path, "does not exist (--text-embeddings)")
+    if not isinstance(raw, dict) or not raw:
+        raise GoiError(f"{path}: expected a JSON object {{text: [floats]}} with at least one entry")
+    out: dict[str, np.ndarray] = {}
+    dims = set()
+    for text, vec in raw.items():
+        if (
+            not isinstance(vec, list)
+            or not vec
+            or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                for v in vec
+            )
+        ):
+            raise GoiError(f"{path}: entry {text[:60]!r} is not a list of finite numbers")
+        v = np.asarray(vec, np.float64)
+        n = float(np.linalg.norm(v))
+        if n == 0:
+            raise GoiError(f"{path}: entry {text[:60]!r} is the zero vector")
+        out[text] = (v / n).astype(np.float32)
+        dims.add(v.size)
+    if len(dims) > 1:
+        raise GoiError(f"{path}: entries have different lengths {sorted(dims)}")
+    return out
+
+
+def text_embedding(
+    prompt: str, dim: int, embeddings: Path | None = None, bundle: Path | None = None
+) -> tuple[np.ndarray, str]:
+    """The prompt's unit embedding [D] and where it came from (a file or a bundle)."""
+    if embeddings is not None:
+        table = load_text_embeddings(embeddings)
+        if prompt not in table:
+            raise GoiError(
+                f"{embeddings}: no embedding for prompt {prompt[:80]!r} ({len(table)} texts "
+                "listed); add it, or pass --bundle DIR with a text encoder to embed any prompt"
+            )
+        vec, source = table[prompt], f"file:{Path(embeddings).name}"
+    elif bundle is not None:
+        from stages.semantics.bundle import load_bundle
+
+        b = load_bundle(bundle)
+        vec, source = b.encode_text(prompt), f"bundle:{b.name}"
+    else:
+        raise GoiError("give --text-embeddings FILE or --bundle DIR to embed the prompt")
+    if vec.shape != (dim,):
+        raise GoiError(
+            f"{embeddings or bundle}: the prompt embedding has {vec.size} dimensions but the "
+            f"field's codebook has {dim}; the text and image features must share one space"
+        )
+    return vec.astype(np.float32), source

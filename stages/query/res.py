@@ -1,0 +1,150 @@
+"""RES masks: where a prompt's 2D referring-expression masks come from, and which views to use.
+
+A source is either mask files made by any external tool (`ResFiles`) or a bundle's RES model run
+on goi's own rendering of a view (`ResModel`). Both answer `available(cams)` (views it can give
+a mask for), `mask(cam)` ([H, W] bool) and `digest(cams)` (changes when any mask would).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from stages.core.artifacts import sha256_file
+from stages.core.errors import GoiError, warn
+from stages.query.osh import HyperplaneParams
+from stages.query.prompts import safe_name
+from stages.scene.cameras import Camera
+from stages.scene.images import read_mask
+from stages.semantics.decode import SemanticRenderer
+
+
+class ResFiles:
+    """RES masks made by any external tool: DIR/<view>.png (a prompt's own directory)."""
+
+    def __init__(self, root: Path, prompt_id: str | None, prompt: str):
+        root = Path(root)
+        if not root.is_dir():
+            raise GoiError(f"--res-masks: {root} is not a directory")
+        candidates = [root / prompt_id] if prompt_id else [root / safe_name(prompt), root]
+        for c in candidates:
+            if c.is_dir() and any(c.glob("*.png")):
+                self.dir = c
+                break
+        else:
+            raise GoiError(
+                f"--res-masks: no <view>.png masks in {candidates[0]}"
+                + ("" if prompt_id else f" nor {root}; pass --prompt-id to name the subdirectory")
+            )
+        self.source = f"files:{self.dir}"
+
+    def available(self, cams: list[Camera]) -> list[Camera]:
+        return [c for c in cams if (self.dir / f"{c.name}.png").is_file()]
+
+    def mask(self, cam: Camera) -> np.ndarray:
+        import cv2
+
+        path = self.dir / f"{cam.name}.png"
+        if not path.is_file():
+            raise GoiError(f"--res-masks: no mask {path} for view '{cam.name}'")
+        m = read_mask(path)
+        if m.shape != (cam.height, cam.width):
+            warn(
+                f"{path}: mask is {m.shape[1]}x{m.shape[0]}, the view {cam.width}x{cam.height}; "
+                "resized (nearest)"
+            )
+            m = cv2.resize(
+                m.astype(np.uint8), (cam.width, cam.height), interpolation=cv2.INTER_NEAREST
+            ).astype(bool)
+        return m
+
+    def digest(self, cams: list[Camera]) -> str:
+        h = hashlib.sha256()
+        for c in cams:
+            h.update(c.name.encode() + sha256_file(self.dir / f"{c.name}.png").encode())
+        return h.hexdigest()
+
+
+class ResModel:
+    """RES masks from a bundle's res.onnx, run on the RGB rendered at each view."""
+
+    def __init__(self, bundle_dir: Path, prompt: str, renderer: SemanticRenderer):
+        from stages.semantics.bundle import load_bundle
+
+        self.bundle = load_bundle(bundle_dir)
+        if not self.bundle.has_res:
+            raise GoiError(
+                f"{bundle_dir}: the bundle has no 'res' model; pass --res-masks DIR instead"
+            )
+        self.prompt = prompt
+        self.renderer = renderer
+        self.source = f"bundle:{self.bundle.name}"
+
+    def available(self, cams: list[Camera]) -> list[Camera]:
+        return cams
+
+    def mask(self, cam: Camera) -> np.ndarray:
+        rgb = self.renderer.rast.render_rgb(cam).image
+        return self.bundle.segment((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), self.prompt)
+
+    def digest(self, cams: list[Camera]) -> str:
+        return hashlib.sha256(
+            (self.bundle.digest() + ",".join(c.name for c in cams)).encode()
+        ).hexdigest()
+
+
+ResSource = ResFiles | ResModel
+
+
+def res_source(
+    res_masks: Path | None,
+    bundle: Path | None,
+    prompt_id: str | None,
+    prompt: str,
+    renderer: SemanticRenderer,
+) -> ResSource:
+    """Mask files when given, else the bundle's RES model; one of them is needed."""
+    if res_masks is not None:
+        return ResFiles(res_masks, prompt_id, prompt)
+    if bundle is not None:
+        return ResModel(bundle, prompt, renderer)
+    raise GoiError(
+        "fitting a hyperplane needs RES masks: --res-masks DIR, or --bundle DIR with a res "
+        "model (or use --mode threshold where there is one)"
+    )
+
+
+def choose_views(
+    source: ResSource, cams: list[Camera], p: HyperplaneParams
+) -> list[tuple[Camera, np.ndarray]]:
+    """The fitting views and their RES masks: named ones, or the largest non-empty masks."""
+    by_name = {c.name: c for c in cams}
+    if p.fit_on:
+        chosen = []
+        for name in [v.strip() for v in p.fit_on.split(",") if v.strip()]:
+            if name not in by_name:
+                raise GoiError(f"--fit-on: the scene has no training view '{name}'")
+            m = source.mask(by_name[name])
+            if not m.any():
+                raise GoiError(
+                    f"--fit-on: the RES mask of view '{name}' is empty ({source.source})"
+                )
+            chosen.append((by_name[name], m))
+        if not chosen:
+            raise GoiError("--fit-on: no view named")
+        return chosen
+    if p.fit_views < 1:
+        raise GoiError("--fit-views must be at least 1")
+    pool = source.available(cams)
+    if isinstance(source, ResModel):
+        # a model costs a run per view: try evenly spaced views until enough are non-empty
+        step = max(1, len(pool) // (3 * p.fit_views))
+        pool = pool[::step][: 3 * p.fit_views]
+    masks = [(c, source.mask(c)) for c in pool]
+    masks = [(c, m) for c, m in masks if m.any()]
+    if not masks:
+        raise GoiError(f"{source.source}: every RES mask of this prompt is empty; nothing to fit")
+    masks.sort(key=lambda cm: (-int(cm[1].sum()), cm[0].name))
+    return masks[: p.fit_views]

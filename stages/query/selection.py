@@ -1,0 +1,63 @@
+"""The 3D selection (the Gaussians of interest) and its artifact (schema goi.selection).
+
+A Gaussian is selected when its own low-dimensional feature decodes to a codebook entry on the
+positive side of the prompt's plane (W' F + b' > 0 on the decoded feature, as the paper does).
+Gaussians no training view ever saw keep their zero initial feature; they are never selected,
+since their decoded entry says nothing about them.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stages.core.artifacts import open_h5, put, write_h5
+from stages.query.osh import Hyperplane
+from stages.semantics.field import Field
+
+SCHEMA = "goi.selection"
+
+
+def select(field: Field, plane: Hyperplane) -> np.ndarray:
+    """[G] bool: the Gaussians of interest."""
+    return field.seen & plane.positive[field.decode_index(field.features)]
+
+
+@dataclass
+class Selection:
+    selected: np.ndarray  # [G] bool
+    prompt: str
+    mode: str
+    ply_sha256: str
+
+
+def write_selection(
+    path: Path,
+    sel: np.ndarray,
+    plane: Hyperplane,
+    mode: str,
+    ply_sha: str,
+    inputs: dict,
+    force: bool = False,
+) -> Path:
+    with write_h5(path, SCHEMA, inputs, force) as f:
+        f.attrs["prompt"] = plane.prompt
+        f.attrs["mode"] = mode
+        f.attrs["n_gaussians"] = int(sel.size)
+        f.attrs["n_selected"] = int(sel.sum())
+        f.attrs["ply_sha256"] = ply_sha
+        put(f, "selected", sel.astype(np.uint8), compress=True)
+    return Path(path)
+
+
+def load_selection(path: str | os.PathLike[str]) -> Selection:
+    with open_h5(path, SCHEMA) as f:
+        return Selection(
+            f["selected"][()].astype(bool),
+            str(f.attrs["prompt"]),
+            str(f.attrs["mode"]),
+            str(f.attrs["ply_sha256"]),
+        )

@@ -1,0 +1,88 @@
+"""`Rasterizer`: one scene's Gaussians rendered from any camera (RGB, features, alpha, depth).
+
+The CPU path is goi's numba kernels (projection, tiles, composite). A GPU backend, when one is
+given, renders instead; the rasteriser never imports one itself (see `gsplat_backend`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+
+from stages.render.composite import Rendered, blend_weights, render
+from stages.render.projection import Projected, project
+from stages.render.sh import sh_to_rgb
+from stages.render.tiles import Bins, bin_tiles
+from stages.scene.cameras import Camera
+
+
+class RenderBackend(Protocol):
+    """Another implementation of the same rasterisation rules (e.g. gsplat on CUDA)."""
+
+    name: str
+
+    def render(
+        self,
+        rast: Rasterizer,
+        cam: Camera,
+        values: np.ndarray | None,
+        background: np.ndarray | None,
+    ) -> Rendered:
+        """RGB from the SH (values None) or per-Gaussian values [N, C], composited at `cam`."""
+        ...
+
+
+class Rasterizer:
+    def __init__(
+        self,
+        means: np.ndarray,
+        quats: np.ndarray,
+        scales: np.ndarray,
+        opacities: np.ndarray,
+        sh: np.ndarray,
+        valid: np.ndarray,
+        backend: RenderBackend | None = None,
+    ):
+        self.means = np.ascontiguousarray(means, np.float32)  # [N, 3]
+        self.quats = np.ascontiguousarray(quats, np.float32)  # [N, 4] unit (w, x, y, z)
+        self.scales = np.ascontiguousarray(scales, np.float32)  # [N, 3]
+        self.opacities = np.ascontiguousarray(opacities, np.float32)  # [N]
+        self.sh = np.ascontiguousarray(sh, np.float32)  # [N, K, 3]
+        self.valid = np.ascontiguousarray(valid, np.bool_)  # [N]
+        self.backend = backend
+
+    @property
+    def backend_name(self) -> str:
+        return "cpu" if self.backend is None else self.backend.name
+
+    @classmethod
+    def from_gaussians(cls, g: Any, backend: RenderBackend | None = None) -> Rasterizer:
+        """From a `stages.scene.gaussians.Gaussians`."""
+        return cls(g.means, g.quats, g.scales, g.opacities, g.sh, g.valid, backend)
+
+    def prepare(self, cam: Camera) -> tuple[Projected, Bins]:
+        proj = project(self.means, self.quats, self.scales, self.opacities, self.valid, cam)
+        return proj, bin_tiles(proj, cam.width, cam.height)
+
+    def render_rgb(self, cam: Camera, background: Any = (0.0, 0.0, 0.0)) -> Rendered:
+        bg = np.asarray(background, np.float32)
+        if self.backend is not None:
+            return self.backend.render(self, cam, None, bg)
+        proj, bins = self.prepare(cam)
+        colors = sh_to_rgb(self.sh, self.means, cam.center)
+        return render(proj, bins, colors, cam.width, cam.height, bg)
+
+    def render_features(self, cam: Camera, features: np.ndarray) -> Rendered:
+        """Per-Gaussian values [N, C] composited without background."""
+        if self.backend is not None:
+            return self.backend.render(self, cam, np.asarray(features, np.float32), None)
+        proj, bins = self.prepare(cam)
+        return render(proj, bins, features, cam.width, cam.height)
+
+    def contribution(self, cam: Camera) -> np.ndarray:
+        """[N] float64: each Gaussian's blending weight summed over the view's pixels (how much
+        of the image it makes; 0 for Gaussians the view does not see)."""
+        proj, bins = self.prepare(cam)
+        _, ids, w = blend_weights(proj, bins, cam.width, cam.height)
+        return np.bincount(ids, weights=w, minlength=self.means.shape[0])

@@ -1,0 +1,111 @@
+"""Pinhole cameras, as every camera format goi reads becomes one.
+
+A `Camera` holds the world-to-camera rotation and translation in OpenCV axes (x right, y down,
+z forward) and intrinsics in pixels with pixel centres at integer + 0.5, which is the convention
+of COLMAP, of the INRIA rasteriser and of goi's own. The readers and writers of each file format
+live in `stages.scene.formats`, whose `load_cameras` tells the format by the file's content.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.core.errors import GoiError
+
+# OpenGL camera axes (y up, z backward) to OpenCV axes (y down, z forward).
+GL_TO_CV = np.diag([1.0, -1.0, -1.0])
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+MAX_IMAGE_SIDE = 16384
+
+
+@dataclass
+class Camera:
+    name: str  # image name without extension; the key every artifact uses for the view
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    R: np.ndarray  # [3, 3] world-to-camera rotation (OpenCV axes)
+    t: np.ndarray  # [3] world-to-camera translation
+    image: str | None = None  # image file, as the camera file names it (may lack an extension)
+
+    @property
+    def center(self) -> np.ndarray:  # [3]
+        return -self.R.T @ self.t
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points [N, 3] -> pixel coordinates [N, 2] (continuous) and depth [N]."""
+        pc = points @ self.R.T + self.t
+        z = pc[:, 2]
+        uv = np.stack([self.fx * pc[:, 0] / z + self.cx, self.fy * pc[:, 1] / z + self.cy], 1)
+        return uv, z
+
+    def scaled(self, width: int, height: int) -> Camera:
+        """The same camera for an image resized to width x height."""
+        sx, sy = width / self.width, height / self.height
+        return Camera(
+            self.name,
+            width,
+            height,
+            self.fx * sx,
+            self.fy * sy,
+            self.cx * sx,
+            self.cy * sy,
+            self.R,
+            self.t,
+            self.image,
+        )
+
+
+def checked(cam: Camera, where: str) -> Camera:
+    if not (math.isfinite(cam.fx) and math.isfinite(cam.fy)) or cam.fx <= 0 or cam.fy <= 0:
+        raise GoiError(
+            f"{where}: camera '{cam.name}' has non-positive or non-finite focal length "
+            f"(fx={cam.fx}, fy={cam.fy})"
+        )
+    if not (0 < cam.width <= MAX_IMAGE_SIDE and 0 < cam.height <= MAX_IMAGE_SIDE):
+        raise GoiError(
+            f"{where}: camera '{cam.name}' has image size {cam.width}x{cam.height}; "
+            f"goi accepts 1..{MAX_IMAGE_SIDE} pixels a side"
+        )
+    if not (np.isfinite(cam.R).all() and np.isfinite(cam.t).all()):
+        raise GoiError(f"{where}: camera '{cam.name}' has a non-finite pose")
+    if abs(np.linalg.det(cam.R) - 1.0) > 1e-3:
+        raise GoiError(
+            f"{where}: camera '{cam.name}' rotation is not a rotation (det = "
+            f"{np.linalg.det(cam.R):.4f})"
+        )
+    return cam
+
+
+def num(obj: dict, key: str, where: str) -> float:
+    if key not in obj:
+        raise GoiError(f"{where}: field '{key}' is missing")
+    try:
+        return float(obj[key])
+    except (TypeError, ValueError):
+        raise GoiError(f"{where}: field '{key}' is not a number ({obj[key]!r})") from None
+
+
+def matrix(obj: dict, key: str, shape: tuple[int, int], where: str) -> np.ndarray:
+    try:
+        m = np.asarray(obj[key], dtype=np.float64)
+    except KeyError:
+        raise GoiError(f"{where}: field '{key}' is missing") from None
+    except (TypeError, ValueError):
+        raise GoiError(f"{where}: field '{key}' is not a numeric matrix") from None
+    if m.shape != shape:
+        raise GoiError(f"{where}: field '{key}' has shape {m.shape}, expected {shape}")
+    return m
+
+
+def stem(name: str) -> str:
+    base = name.replace("\\", "/").rsplit("/", 1)[-1]
+    root, ext = os.path.splitext(base)
+    return root if ext in IMAGE_EXTS else base

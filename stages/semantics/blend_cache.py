@@ -1,0 +1,205 @@
+"""The frozen-geometry blend cache: every training view's blend weights, built once, on disk.
+
+GOI never moves the Gaussians while it fits semantics, so for a fixed view the rendered feature
+map is linear in the per-Gaussian features: F_view = W_view f, with W_view a sparse
+[pixels x Gaussians] matrix of blending weights alpha_i T_i. Rasterise every training view once,
+keep W_view, and each training step is a sparse product (and its transpose for the gradient)
+instead of a rasterisation.
+
+Columns are stored in Morton (Z-curve) order of the Gaussian centres: Gaussians that meet at a
+pixel sit close in memory, which is what makes the sparse products fast.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from stages.core.artifacts import open_h5, put, write_h5
+from stages.core.errors import GoiError
+from stages.core.report import SILENT, Report
+from stages.render.composite import blend_weights
+from stages.render.rasterizer import Rasterizer
+from stages.scene.cameras import Camera
+from stages.scene.scene import Scene
+from stages.semantics.weights import morton_order, pool, top_k
+
+SCHEMA = "goi.blend_cache"
+
+
+@dataclass
+class ViewWeights:
+    """One view's W as CSR [height * width, n_gaussians]; columns are positions in `order`."""
+
+    width: int
+    height: int
+    indptr: np.ndarray  # [P + 1] int64
+    indices: np.ndarray  # [nnz] int32
+    weights: np.ndarray  # [nnz] float32
+    mass_kept: float  # sum of kept weights / sum of all weights (1 without top-K)
+    entries_total: int  # entries before top-K
+
+    @property
+    def nbytes(self) -> int:
+        return self.indptr.nbytes + self.indices.nbytes + self.weights.nbytes
+
+
+def view_weights(
+    rast: Rasterizer,
+    cam: Camera,
+    position: np.ndarray,
+    k: int = 0,
+    size: tuple[int, int] | None = None,
+) -> ViewWeights:
+    """Rasterise `cam` once and keep its weights; `position` maps Gaussian id -> column.
+    With `size` (width, height) smaller than the image, pixels are pooled into that grid."""
+    proj, bins = rast.prepare(cam)
+    indptr, ids, vals = blend_weights(proj, bins, cam.width, cam.height)
+    total = float(vals.sum(dtype=np.float64))
+    kp, ki, kv = top_k(indptr, position[ids], vals, k)
+    kept = float(kv.sum(dtype=np.float64))
+    w, h = size or (cam.width, cam.height)
+    if (w, h) != (cam.width, cam.height):
+        kp, ki, kv = pool(kp, ki, kv, cam.width, cam.height, w, h, len(position))
+    return ViewWeights(w, h, kp, ki, kv, kept / total if total > 0 else 1.0, int(len(ids)))
+
+
+@dataclass
+class BlendCache:
+    order: np.ndarray  # [G] int32: column j is Gaussian order[j]
+    views: dict[str, ViewWeights]
+    top_k: int
+    ply_sha256: str
+    cameras_sha256: str
+
+    @property
+    def n_gaussians(self) -> int:
+        return int(len(self.order))
+
+    def save(self, path: str | os.PathLike[str], force: bool = True) -> None:
+        inputs = {"ply": self.ply_sha256, "cameras": self.cameras_sha256}
+        with write_h5(path, SCHEMA, inputs, force=force) as f:
+            f.attrs.update(
+                n_gaussians=self.n_gaussians,
+                top_k=self.top_k,
+                ply_sha256=self.ply_sha256,
+                cameras_sha256=self.cameras_sha256,
+            )
+            put(f, "order", self.order)
+            views = f.create_group("views", track_order=True)
+            for name, vw in self.views.items():
+                grp = views.create_group(name)
+                grp.attrs.update(
+                    width=vw.width,
+                    height=vw.height,
+                    mass_kept=vw.mass_kept,
+                    entries_total=vw.entries_total,
+                )
+                put(grp, "indptr", vw.indptr)
+                put(grp, "indices", vw.indices)
+                put(grp, "weights", vw.weights)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> BlendCache:
+        with open_h5(path, SCHEMA) as f:
+            views = {}
+            for name, grp in f["views"].items():
+                a = grp.attrs
+                vw = ViewWeights(
+                    int(a["width"]),
+                    int(a["height"]),
+                    grp["indptr"][()],
+                    grp["indices"][()],
+                    grp["weights"][()],
+                    float(a["mass_kept"]),
+                    int(a["entries_total"]),
+                )
+                if len(vw.indptr) != vw.width * vw.height + 1:
+                    raise GoiError(
+                        f"{path}: view '{name}' has {len(vw.indptr) - 1} pixel rows "
+                        f"for a {vw.width}x{vw.height} image"
+                    )
+                views[name] = vw
+            return cls(
+                f["order"][()],
+                views,
+                int(f.attrs["top_k"]),
+                str(f.attrs["ply_sha256"]),
+                str(f.attrs["cameras_sha256"]),
+            )
+
+    def weight_stats(self) -> dict[str, float]:
+        n_views = max(len(self.views), 1)
+        return {
+            "views": float(len(self.views)),
+            "entries_per_pixel": sum(len(v.indices) for v in self.views.values())
+            / max(sum(v.width * v.height for v in self.views.values()), 1),
+            "mass_kept": sum(v.mass_kept for v in self.views.values()) / n_views,
+            "mib_per_view": sum(v.nbytes for v in self.views.values()) / n_views / 2**20,
+        }
+
+
+def build_cache(
+    rast: Rasterizer,
+    cameras: list[Camera],
+    k: int,
+    ply_sha256: str,
+    cameras_sha256: str,
+    sizes: dict[str, tuple[int, int]] | None = None,
+    report: Report = SILENT,
+) -> BlendCache:
+    order = morton_order(rast.means)
+    position = np.empty_like(order)
+    position[order] = np.arange(len(order), dtype=np.int32)
+    views = {
+        cam.name: view_weights(rast, cam, position, k, (sizes or {}).get(cam.name))
+        for cam in report.progress(cameras, "blend cache", length=len(cameras))
+    }
+    return BlendCache(order, views, k, ply_sha256, cameras_sha256)
+
+
+def build_or_load(
+    path: str | os.PathLike[str],
+    scene: Scene,
+    cameras: list[Camera],
+    k: int = 0,
+    sizes: dict[str, tuple[int, int]] | None = None,
+    report: Report = SILENT,
+) -> BlendCache:
+    """The cache for these views, reused from `path` when it was built for the same PLY,
+    cameras, top-K and view sizes, otherwise (re)built and written there. `sizes` gives a
+    view's (width, height) when it is to be pooled below image resolution."""
+    ply_sha, cam_sha = scene.ply_digest(), scene.cameras_digest()
+    want = {c.name: (sizes or {}).get(c.name, (c.width, c.height)) for c in cameras}
+    p = Path(path)
+    if p.is_file() and _matches(p, ply_sha, cam_sha, k, want):
+        cache = BlendCache.load(p)
+        cache.views = {c.name: cache.views[c.name] for c in cameras}
+        return cache
+    rast = Rasterizer.from_gaussians(scene.gaussians)
+    cache = build_cache(rast, cameras, k, ply_sha, cam_sha, want, report)
+    cache.save(p, force=True)
+    return cache
+
+
+def _matches(p: Path, ply_sha: str, cam_sha: str, k: int, want: dict[str, tuple[int, int]]) -> bool:
+    try:
+        with h5py.File(p, "r") as f:
+            a, views = f.attrs, f.get("views", {})
+            return (
+                a.get("schema") == SCHEMA
+                and a.get("ply_sha256") == ply_sha
+                and a.get("cameras_sha256") == cam_sha
+                and int(a.get("top_k", -1)) == k
+                and all(
+                    v in views
+                    and (int(views[v].attrs["width"]), int(views[v].attrs["height"])) == wh
+                    for v, wh in want.items()
+                )
+            )
+    except (OSError, KeyError):
+        return False

@@ -1,0 +1,82 @@
+"""fit-field checkpoints (schema goi.field_checkpoint): parameters, Adam moments, the sampler's
+state and the loss curve, so that a resumed fit continues bit for bit."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stages.core.artifacts import open_h5, put, write_h5
+from stages.core.errors import GoiError
+from stages.semantics.field_model import PARAMETERS, FieldModel
+
+SCHEMA = "goi.field_checkpoint"
+
+
+def save_checkpoint(
+    path: Path,
+    model: FieldModel,
+    opt: torch.optim.Optimizer,
+    rng: np.random.Generator,
+    iteration: int,
+    curve: list[list[float]],
+    inputs: dict[str, str],
+    config: dict,
+) -> None:
+    with write_h5(path, SCHEMA, inputs, force=True) as f:
+        f.attrs.update(
+            iteration=iteration,
+            rng_state=json.dumps(rng.bit_generator.state),
+            config=json.dumps(config, sort_keys=True),
+        )
+        for name, p in zip(PARAMETERS, model.parameter_list(), strict=True):
+            put(f, name, p.detach().numpy())
+            st = opt.state.get(p, {})
+            if st:
+                grp = f.create_group(f"adam/{name}")
+                put(grp, "exp_avg", st["exp_avg"].numpy())
+                put(grp, "exp_avg_sq", st["exp_avg_sq"].numpy())
+                put(grp, "step", np.float32(st["step"]))
+        put(f, "loss_curve", np.asarray(curve, np.float32).reshape(-1, 5))
+
+
+def load_checkpoint(
+    path: Path,
+    model: FieldModel,
+    opt: torch.optim.Optimizer,
+    rng: np.random.Generator,
+    inputs: dict[str, str],
+    config: dict,
+) -> tuple[int, list[list[float]]]:
+    """Restore model, optimiser and sampler from `path`; returns the iteration reached and the
+    loss curve so far. Refuses a checkpoint made from other inputs or options."""
+    with open_h5(path, SCHEMA) as f:
+        if json.loads(f.attrs["inputs"]) != inputs:
+            raise GoiError(
+                f"{path}: checkpoint was made from other inputs (scene, features or "
+                "codebook); delete it or run without --resume"
+            )
+        if json.loads(f.attrs["config"]) != json.loads(json.dumps(config, sort_keys=True)):
+            raise GoiError(
+                f"{path}: checkpoint was made with other fit-field options; use the "
+                "same options or run without --resume"
+            )
+        with torch.no_grad():
+            for name, p in zip(PARAMETERS, model.parameter_list(), strict=True):
+                if tuple(f[name].shape) != tuple(p.shape):
+                    raise GoiError(
+                        f"{path}: '{name}' has shape {f[name].shape}, expected {tuple(p.shape)}"
+                    )
+                p.copy_(torch.from_numpy(f[name][()]))
+                if f"adam/{name}" in f:
+                    grp = f[f"adam/{name}"]
+                    opt.state[p] = {
+                        "step": torch.tensor(float(grp["step"][()])),
+                        "exp_avg": torch.from_numpy(grp["exp_avg"][()]),
+                        "exp_avg_sq": torch.from_numpy(grp["exp_avg_sq"][()]),
+                    }
+        rng.bit_generator.state = json.loads(f.attrs["rng_state"])
+        return int(f.attrs["iteration"]), f["loss_curve"][()].tolist()

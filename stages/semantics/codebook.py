@@ -1,0 +1,81 @@
+"""`goi init-codebook`: the codebook (TFCC) artifact, initialised by spherical k-means over
+sampled 2D features (see `kmeans`)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stages.core.arrays import normalise
+from stages.core.artifacts import input_digest, open_h5, put, write_h5
+from stages.core.errors import GoiError
+from stages.core.report import SILENT, Report
+from stages.semantics.features import load_features
+from stages.semantics.kmeans import even_subset, sample_cells, spherical_kmeans
+
+SCHEMA = "goi.codebook"
+
+
+@dataclass
+class CodebookParams:
+    entries: int = 300
+    """N, the number of codebook entries (the paper's default)."""
+    views: int = 40
+    """Feature maps to sample from, evenly spaced over the training views (paper: 30-50)."""
+    samples: int = 200_000
+    """Feature cells drawn from those views for clustering."""
+    iterations: int = 10
+    """k-means iterations (the authors' code uses 10)."""
+    two_stage: bool = False
+    """The authors' variant: k-means(80) on every 8th view, then k-means(N) on those centres."""
+    seed: int = 0
+    """Random seed; the same seed and inputs give the same codebook."""
+
+
+@dataclass
+class CodebookRun:
+    out: Path
+    """Codebook artifact to write (HDF5, schema goi.codebook)."""
+    force: bool = False
+    """Replace an existing output."""
+
+
+def init_codebook(
+    features_path: Path, p: CodebookParams, run: CodebookRun, report: Report = SILENT
+) -> Path:
+    fm = load_features(features_path)
+    rng = np.random.default_rng(p.seed)
+    if p.entries < 2:
+        raise GoiError("--entries must be at least 2")
+    if p.two_stage:
+        firsts = []
+        for i, v in enumerate(fm.views[::8]):
+            cells = np.unique(fm.maps[v].reshape(-1, fm.dim), axis=0)
+            k = min(80, len(cells))
+            c, _ = spherical_kmeans(cells, k, p.iterations, p.seed + i, f"k-means {v}", report)
+            firsts.append(c)
+        x = np.concatenate(firsts)
+        method = "two-stage spherical k-means (80 per 8th view, then N)"
+    else:
+        x = sample_cells(fm, even_subset(fm.views, p.views), p.samples, rng)
+        method = "spherical k-means, k-means++ seeding"
+    entries, counts = spherical_kmeans(normalise(x), p.entries, p.iterations, p.seed, report=report)
+    with write_h5(run.out, SCHEMA, input_digest("features", features_path), run.force) as f:
+        f.attrs.update(
+            n_entries=p.entries, dim=fm.dim, seed=p.seed, method=method, samples=int(len(x))
+        )
+        put(f, "entries", entries.astype(np.float32))
+        put(f, "counts", counts.astype(np.int64))
+    return run.out
+
+
+def load_codebook(path: str | os.PathLike[str]) -> np.ndarray:
+    """[N, D] float32 unit entries."""
+    with open_h5(path, SCHEMA) as f:
+        entries = f["entries"][()]
+    if not np.isfinite(entries).all():
+        raise GoiError(f"{path}: codebook entries contain NaN/inf")
+    return entries

@@ -1,0 +1,175 @@
+"""`goi extract`: the features artifact, from an ONNX image encoder or imported files.
+
+Views are written one by one into `<out>.partial`; an interrupted run resumes there (views
+already done are skipped) and the finished file is renamed to `<out>` only at the end.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from stages.core.artifacts import check_writable, put, sha256_files, stamp
+from stages.core.errors import GoiError
+from stages.core.report import SILENT, Report
+from stages.scene.scene import Scene
+from stages.semantics.feature_files import find_feature_file, load_feature_file, resample
+from stages.semantics.features import SCHEMA
+
+
+@dataclass
+class ExtractParams:
+    split: str = "train"
+    """Which views to extract: train, test or all."""
+    max_side: int = 160
+    """Feature maps larger than this on their longer side are area-downsampled to it: fit-field
+    trains on feature cells, and finer cells cost time without adding language detail."""
+
+
+@dataclass
+class ExtractRun:
+    out: Path
+    """Features artifact to write (HDF5, schema goi.features)."""
+    force: bool = False
+    """Replace an existing output."""
+
+
+def _write_views(
+    run: ExtractRun,
+    scene: Scene,
+    names: list[str],
+    source: str,
+    inputs: dict[str, str],
+    make: Callable[[str], np.ndarray],
+    report: Report,
+) -> Path:
+    out = run.out
+    check_writable(out, run.force)
+    partial = out.with_name(out.name + ".partial")
+    mode = "w"
+    if partial.is_file():
+        try:
+            with h5py.File(partial, "r") as f:
+                same = json.loads(f.attrs.get("inputs", "{}")) == inputs
+        except OSError:
+            same = False
+        mode = "r+" if same else "w"
+        if same:
+            report.log(f"resuming {partial}")
+    # On bad input nothing of this run is worth keeping, so a partial file it created goes.
+    # An interruption (Ctrl-C, a crash) keeps it, so that the next run resumes it.
+    with _removed_on_bad_input(partial, created=mode == "w"):
+        dim = None
+        with h5py.File(partial, mode, track_order=True) as f:
+            if mode == "w":
+                stamp(f, SCHEMA, inputs)
+                f.attrs["source"] = source
+                f.create_group("views", track_order=True)
+            views = f["views"]
+            for v in [n for n in names if n in views]:
+                if views[v].get("features") is None:
+                    del views[v]  # a view cut off while being written
+            todo = [n for n in names if n not in views]
+            for name in report.progress(todo, "extract", length=len(todo)):
+                hwd = make(name)
+                if dim is None:
+                    dim = int(f.attrs.get("dim", hwd.shape[2]))
+                if hwd.shape[2] != dim:
+                    raise GoiError(
+                        f"features of view '{name}' have dimension {hwd.shape[2]}, "
+                        f"the other views {dim}"
+                    )
+                cam = scene.camera(name)
+                g = views.create_group(name)
+                g.attrs.update(image_width=cam.width, image_height=cam.height)
+                put(g, "features", hwd.astype(np.float16), compress=True)
+                f.attrs["dim"] = dim
+                f.flush()
+            if "dim" not in f.attrs:
+                raise GoiError("no views to extract")
+            stamp(f, SCHEMA, inputs)  # `created` becomes the time the last view was written
+    with open(partial, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(partial, out)
+    return out
+
+
+@contextlib.contextmanager
+def _removed_on_bad_input(path: Path, created: bool) -> Iterator[None]:
+    try:
+        yield
+    except GoiError:
+        if created:
+            path.unlink(missing_ok=True)
+        raise
+
+
+def import_features(
+    scene: Scene, src: Path, p: ExtractParams, run: ExtractRun, report: Report = SILENT
+) -> Path:
+    """Write the features artifact from per-image `.npy` / `.pt` files in `src`."""
+    if not src.is_dir():
+        raise GoiError(f"--from: {src} is not a directory")
+    cams = scene.views(p.split)
+    files = {c.name: find_feature_file(src, c.name, c.image) for c in cams}
+    missing = [n for n, p in files.items() if p is None]
+    if len(missing) == len(files):
+        raise GoiError(
+            f"--from: {src} has no <view>.npy or <view>.pt for any of the "
+            f"{len(files)} {p.split} views (e.g. {cams[0].name}.npy): do the "
+            "feature files belong to this scene?"
+        )
+    if missing:
+        raise GoiError(
+            f"--from: {src} has no features for view(s) {', '.join(missing[:5])}"
+            f"{' ...' if len(missing) > 5 else ''}"
+        )
+    inputs = {
+        "cameras": scene.cameras_digest(),
+        # Every byte: a file edited in place must not pass for the one a field was fitted on.
+        "features_dir": sha256_files([f for f in files.values() if f is not None]),
+    }
+
+    def make(name: str) -> np.ndarray:
+        path = files[name]
+        assert path is not None  # checked above
+        chw = load_feature_file(path)
+        if not np.isfinite(chw).all():
+            raise GoiError(f"{path}: holds {int((~np.isfinite(chw)).sum())} NaN/inf values")
+        cam = scene.camera(name)
+        if chw.shape[1] > cam.height or chw.shape[2] > cam.width:
+            raise GoiError(
+                f"{path}: map {chw.shape[2]}x{chw.shape[1]} is larger than its image "
+                f"{cam.width}x{cam.height}"
+            )
+        return resample(chw, p.max_side)
+
+    return _write_views(run, scene, list(files), f"import:{src}", inputs, make, report)
+
+
+def encode_views(
+    scene: Scene, bundle_dir: Path, p: ExtractParams, run: ExtractRun, report: Report = SILENT
+) -> Path:
+    """Write the features artifact by running a bundle's image encoder on the images."""
+    from stages.semantics.bundle import load_bundle
+
+    bundle = load_bundle(bundle_dir)
+    names = [c.name for c in scene.views(p.split)]
+    for n in names:  # fail before any work on a missing or mis-sized image
+        scene.image_path(scene.camera(n))
+    inputs = {"cameras": scene.cameras_digest(), "bundle": bundle.digest()}
+
+    def make(name: str) -> np.ndarray:
+        chw = bundle.encode_image(scene.load_image(scene.camera(name)))
+        if not np.isfinite(chw).all():
+            raise GoiError(f"{bundle_dir}: image encoder returned NaN/inf for view '{name}'")
+        return resample(chw, p.max_side)
+
+    return _write_views(run, scene, names, f"bundle:{bundle.name}", inputs, make, report)

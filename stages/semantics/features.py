@@ -1,0 +1,48 @@
+"""The features artifact: per training view a dense [h, w, D] map of language-aligned features.
+
+Readers get float32, L2-normalised per cell (GOI only ever compares features by cosine).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stages.core.arrays import normalise
+from stages.core.artifacts import open_h5
+from stages.core.errors import GoiError
+
+SCHEMA = "goi.features"
+
+
+@dataclass
+class FeatureMaps:
+    dim: int
+    maps: dict[str, np.ndarray]  # view -> [h, w, D] float32, unit norm (zero cells stay zero)
+
+    @property
+    def views(self) -> list[str]:
+        return list(self.maps)
+
+
+def load_features(path: str | os.PathLike[str], views: list[str] | None = None) -> FeatureMaps:
+    p = Path(path)
+    with open_h5(p, SCHEMA) as f:
+        dim = int(f.attrs["dim"])
+        names = list(f["views"]) if views is None else views
+        missing = [v for v in names if v not in f["views"]]
+        if missing:
+            raise GoiError(
+                f"{p}: no features for view(s) {', '.join(missing[:5])}"
+                f"{' ...' if len(missing) > 5 else ''}; re-run goi extract"
+            )
+        maps = {}
+        for v in names:
+            m = f["views"][v]["features"][()].astype(np.float32)
+            if not np.isfinite(m).all():
+                raise GoiError(f"{p}: features of view '{v}' contain NaN/inf")
+            maps[v] = normalise(m)
+    return FeatureMaps(dim, maps)

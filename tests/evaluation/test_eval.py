@@ -1,0 +1,62 @@
+"""goi eval end to end on a small synthetic room in the benchmark layout."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from goi_cli.main import main
+from schemas import validate_json
+from stages.render.rasterizer import Rasterizer
+from stages.scene.gaussians import load_ply
+from tests.helpers import semantic_scene
+
+
+def make_room(root):
+    """semantic_scene plus prompts.json, eval/masks, gaussian_ids.npy, text embeddings, RES."""
+    s = semantic_scene(root, n=4000, n_views=8, size=(64, 48), dim=16)
+    room = s["scene"]
+    ids = s["onehot"].argmax(1).astype(np.int32)
+    np.save(room / "gaussian_ids.npy", ids)
+    rast = Rasterizer.from_gaussians(load_ply(room / "point_cloud.ply"))
+    prompts, emb = [], {}
+    for k in (1, 2):
+        pid, text = f"p{k}", f"<b>object {k}</b>"  # markup must survive into the HTML escaped
+        emb[text] = s["objects"][k].tolist()
+        tests = []
+        for name in s["train"] + s["test"]:
+            share = rast.render_features(s["cameras"][name], s["onehot"]).image
+            m = ((share.argmax(2) == k) & (share.sum(2) > 0.5)).astype(np.uint8) * 255
+            split = "res" if name in s["train"] else "eval/masks"
+            (room / split / pid).mkdir(parents=True, exist_ok=True)
+            if name in s["test"] and m.any():
+                tests.append(name)
+            cv2.imwrite(str(room / split / pid / f"{name}.png"), m)
+        prompts.append({"id": pid, "text": text, "targets": [k], "kind": "x", "test_views": tests})
+    (room / "prompts.json").write_text(json.dumps(prompts))
+    (room / "text_embeddings.json").write_text(json.dumps(emb))
+    return s, room
+
+
+@pytest.mark.slow
+def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
+    s, room = make_room(tmp_path)
+    out = tmp_path / "r.json"
+    argv = ["eval", str(room), "--features", str(s["features"]), "--res-masks",
+            str(room / "res"), "--out", str(out), "--html", str(tmp_path / "r.html"),
+            "--iterations", "150", "--entries", "16"]  # fmt: skip
+    assert main(argv) == 0
+    r = json.loads(out.read_text())
+    validate_json(r, "goi.eval", str(out))
+    assert set(r["variants"]) == {"full", "without_osh", "without_tfcc", "baseline"}
+    for v in r["variants"].values():
+        assert 0 <= v["miou"] <= 1 and 0 <= v["mpa"] <= 1 and 0 <= v["mp"] <= 1
+        assert set(v["prompts"]) == {"p1", "p2"}
+    assert r["variants"]["full"]["miou"] >= 0.7
+    assert r["variants"]["full"]["miou_3d_visible"] >= 0.7
+    for stage in ("extract", "init_codebook", "fit_field_tfcc", "fit_field_direct"):
+        assert r["timings_s"][stage] > 0
+    page = (tmp_path / "r.html").read_text()
+    assert "&lt;b&gt;object 1&lt;/b&gt;" in page and "<b>object" not in page
+    assert main(argv) == 2  # the report exists: --force is needed

@@ -1,0 +1,55 @@
+import numpy as np
+import pytest
+
+from stages.evaluation.metrics import image_scores, iou_3d, mean_scores
+
+
+def _m(rows):
+    return np.array(rows, bool)
+
+
+def test_known_values():
+    gt = _m([[1, 1, 0, 0], [0, 0, 0, 0]])
+    pred = _m([[1, 0, 1, 0], [0, 0, 0, 0]])
+    s = image_scores(pred, gt)
+    # TP 1, FP 1, FN 1, TN 5
+    assert s.iou == pytest.approx(1 / 3)
+    assert s.mpa == pytest.approx((1 / 2 + 5 / 6) / 2)
+    assert s.mp == pytest.approx((1 / 2 + 5 / 6) / 2)
+    gt2 = _m([[1, 1, 1, 1], [0, 0, 0, 0]])
+    pred2 = _m([[1, 1, 0, 0], [1, 0, 0, 0]])
+    # TP 2, FP 1, FN 2, TN 3
+    s2 = image_scores(pred2, gt2)
+    assert s2.iou == pytest.approx(2 / 5)
+    assert s2.mpa == pytest.approx((2 / 4 + 3 / 4) / 2)
+    assert s2.mp == pytest.approx((2 / 3 + 3 / 5) / 2)
+    assert mean_scores([s, s2]).iou == pytest.approx((1 / 3 + 2 / 5) / 2)
+
+
+def test_empty_prediction_and_empty_ground_truth():
+    gt = _m([[1, 0], [0, 0]])
+    empty = np.zeros((2, 2), bool)
+    s = image_scores(empty, gt)  # missed the object
+    assert s.iou == 0 and s.mpa == pytest.approx(0.5) and s.mp == pytest.approx((0 + 3 / 4) / 2)
+    s = image_scores(empty, empty)  # nothing there, nothing predicted: perfect
+    assert (s.iou, s.mpa, s.mp) == (1.0, 1.0, 1.0)
+    s = image_scores(gt, empty)  # a false alarm on an empty ground truth
+    assert s.iou == 0 and s.mpa == pytest.approx((0 + 3 / 4) / 2) and s.mp == pytest.approx(0.5)
+    full = np.ones((2, 2), bool)
+    assert image_scores(full, full).as_dict() == {"iou": 1.0, "mpa": 1.0, "mp": 1.0}
+
+
+def test_prediction_is_resized_to_the_ground_truth():
+    gt = np.zeros((4, 4), bool)
+    gt[:2, :2] = True
+    pred = np.zeros((2, 2), bool)
+    pred[0, 0] = True
+    assert image_scores(pred, gt).iou == 1.0
+
+
+def test_iou_3d_counts_and_weights():
+    sel = np.array([1, 1, 0, 0], bool)
+    tgt = np.array([1, 0, 1, 0], bool)
+    assert iou_3d(sel, tgt) == pytest.approx(1 / 3)
+    assert iou_3d(sel, tgt, np.array([2.0, 1.0, 1.0, 5.0])) == pytest.approx(2 / 4)
+    assert iou_3d(np.zeros(3, bool), np.zeros(3, bool)) == 1.0

@@ -1,0 +1,143 @@
+"""The query half on the synthetic scene: hyperplane, masks, 3D selection, PLY export."""
+
+import json
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+
+from goi_cli.main import main
+from stages.query.selection import load_selection
+from stages.render.rasterizer import Rasterizer
+from stages.scene.gaussians import load_ply
+from stages.semantics.field import load_field
+
+OBJ = 2  # a box standing on the floor
+
+
+@pytest.fixture(scope="module")
+def queried(fitted, tmp_path_factory):
+    """Text embeddings = the objects' features; RES masks = each object's true train masks."""
+    s, run = fitted
+    root = tmp_path_factory.mktemp("query")
+    emb = {f"object {k}": s["objects"][k].tolist() for k in range(len(s["objects"]))}
+    (root / "text.json").write_text(json.dumps(emb))
+    rast = Rasterizer.from_gaussians(load_ply(s["scene"] / "point_cloud.ply"))
+    for k in range(len(s["objects"])):
+        d = root / "res" / f"o{k}"
+        d.mkdir(parents=True)
+        for name in s["train"]:
+            share = rast.render_features(s["cameras"][name], s["onehot"]).image
+            m = (share.argmax(2) == k) & (share.sum(2) > 0.5)
+            cv2.imwrite(str(d / f"{name}.png"), m.astype(np.uint8) * 255)
+    return s, run, root
+
+
+def _query(s, run, root, k, *extra):
+    return main(
+        [
+            "query", "--scene", str(s["scene"]), "--field", str(run / "field.h5"),
+            "--prompt", f"object {k}", "--text-embeddings", str(root / "text.json"),
+            "--res-masks", str(root / "res"), "--prompt-id", f"o{k}",
+            "--out", str(root / "out"), *extra,
+        ]
+    )  # fmt: skip
+
+
+def _selection(root, k):
+    from stages.query.prompts import safe_name
+
+    return load_selection(root / "out" / safe_name(f"object {k}") / "selection.h5")
+
+
+@pytest.mark.slow
+def test_selected_gaussians_match_the_object(queried):
+    """3D IoU weighted by how much each Gaussian makes of the training images: a Gaussian
+    hidden behind others (a box's underside) is neither rewarded nor punished."""
+    s, run, root = queried
+    rast = Rasterizer.from_gaussians(load_ply(s["scene"] / "point_cloud.ply"))
+    w = sum(rast.contribution(s["cameras"][n]) for n in s["train"])
+    ids = s["onehot"].argmax(1)
+    for k in (1, 2, 3, 4):
+        assert _query(s, run, root, k) == 0
+        sel = _selection(root, k).selected
+        truth = ids == k
+        iou = w[sel & truth].sum() / w[sel | truth].sum()
+        assert iou >= 0.9, (k, iou)
+
+
+@pytest.mark.slow
+def test_a_cached_prompt_is_not_refitted(queried, capsys):
+    s, run, root = queried
+    assert _query(s, run, root, OBJ) == 0
+    capsys.readouterr()
+    with h5py.File(root / "out" / "hyperplanes.h5") as f:
+        before = {k: f["prompts"][k]["W"][()].copy() for k in f["prompts"]}
+    assert _query(s, run, root, OBJ) == 0
+    assert "(cached)" in capsys.readouterr().out
+    with h5py.File(root / "out" / "hyperplanes.h5") as f:
+        assert set(f["prompts"]) == set(before)
+        for k, w in before.items():
+            np.testing.assert_array_equal(f["prompts"][k]["W"][()], w)
+
+
+@pytest.mark.slow
+def test_the_hyperplane_beats_a_wrong_threshold(queried):
+    """With the threshold set far too low, the fixed cut selects much of the scene; fitting the
+    plane from there against the RES masks recovers the object."""
+    s, run, root = queried
+    rast = Rasterizer.from_gaussians(load_ply(s["scene"] / "point_cloud.ply"))
+    w = sum(rast.contribution(s["cameras"][n]) for n in s["train"])
+    truth = s["onehot"].argmax(1) == OBJ
+
+    def iou(sel):
+        return w[sel & truth].sum() / w[sel | truth].sum()
+
+    args = ["--threshold", "-0.2", "--out", str(root / "wrong")]
+    assert _query(s, run, root, OBJ, "--mode", "threshold", *args) == 0
+    fixed = iou(_selection_in(root / "wrong", OBJ, "threshold"))
+    assert _query(s, run, root, OBJ, "--mode", "hyperplane", *args) == 0
+    fitted = iou(_selection_in(root / "wrong", OBJ, "hyperplane"))
+    assert fixed < 0.5 and fitted >= 0.9, (fixed, fitted)
+
+
+def _selection_in(out, k, mode):
+    from stages.query.prompts import safe_name
+
+    sel = load_selection(out / safe_name(f"object {k}") / "selection.h5")
+    assert sel.mode == mode
+    return sel.selected
+
+
+@pytest.mark.slow
+def test_exported_plys_load_back_with_identical_values(queried, tmp_path):
+    s, run, root = queried
+    assert _query(s, run, root, OBJ) == 0
+    from stages.query.prompts import safe_name
+
+    sel_path = root / "out" / safe_name(f"object {OBJ}") / "selection.h5"
+    sel = load_selection(sel_path).selected
+    src = load_ply(s["scene"] / "point_cloud.ply").vertex
+    base = ["export-ply", "--scene", str(s["scene"]), "--selection", str(sel_path)]
+
+    def export(name, *extra):
+        assert main([*base, "--out", str(tmp_path / name), *extra]) == 0
+        return load_ply(tmp_path / name).vertex
+
+    sub = export("subset.ply")
+    assert len(sub) == sel.sum() and sub.tobytes() == src[sel].tobytes()
+    inv = export("invert.ply", "--invert")
+    assert inv.tobytes() == src[~sel].tobytes()
+    hi = export("hi.ply", "--highlight", "#00ff00")
+    assert hi[~sel].tobytes() == src[~sel].tobytes()
+    np.testing.assert_allclose(0.5 + 0.28209479177387814 * hi["f_dc_1"][sel], 1.0, atol=1e-6)
+    mv = export("mv.ply", "--translate", "0.5,0,-1")
+    np.testing.assert_allclose(mv["x"][sel], src["x"][sel] + 0.5, atol=1e-6)
+    np.testing.assert_array_equal(mv["y"], src["y"])
+    sem = export("sem.ply", "--semantics", "--field", str(run / "field.h5"))
+    field = load_field(run / "field.h5")
+    np.testing.assert_array_equal(sem["sem_3"], field.features[sel, 3])
+    assert main([*base, "--out", str(tmp_path / "x.ply"), "--translate", "1,2"]) == 2
+    assert main([*base, "--out", str(tmp_path / "x.ply"), "--invert", "--highlight", "red"]) == 2
+    assert not (tmp_path / "x.ply").exists()

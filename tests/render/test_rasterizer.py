@@ -1,0 +1,116 @@
+import numpy as np
+import pytest
+
+from stages.render.composite import blend_weights, render, render_backward
+from stages.render.projection import project
+from stages.render.rasterizer import Rasterizer
+from stages.render.reference import reference_project, reference_render, reference_weights
+from stages.render.sh import sh_to_rgb
+from stages.render.tiles import bin_tiles
+from stages.scene.gaussians import load_ply
+from tests.helpers import front_camera, random_vertex, write_ply
+
+
+def _scene(tmp_path, n=250, degree=3, seed=0):
+    g = load_ply(write_ply(tmp_path / f"s{seed}.ply", random_vertex(n, degree=degree, seed=seed)))
+    return g, Rasterizer.from_gaussians(g)
+
+
+def test_projection_matches_the_matrix_form(tmp_path):
+    g, r = _scene(tmp_path)
+    cam = front_camera()
+    fast = project(r.means, r.quats, r.scales, r.opacities, r.valid, cam)
+    ref = reference_project(r.means, r.quats, r.scales, r.opacities, r.valid, cam)
+    np.testing.assert_array_equal(fast.radii > 0, ref.radii > 0)
+    vis = ref.radii > 0
+    assert vis.sum() > 100
+    np.testing.assert_array_equal(fast.radii, ref.radii)
+    np.testing.assert_allclose(fast.means2d[vis], ref.means2d[vis], atol=1e-3)
+    np.testing.assert_allclose(fast.conics[vis], ref.conics[vis], rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(fast.depths[vis], ref.depths[vis], rtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fast_render_equals_reference(tmp_path, seed):
+    g, r = _scene(tmp_path, seed=seed)
+    cam = front_camera(61, 45)  # partial tiles at the right and bottom edges
+    proj, bins = r.prepare(cam)
+    ref_proj = reference_project(r.means, r.quats, r.scales, r.opacities, r.valid, cam)
+    rgb = sh_to_rgb(r.sh, r.means, cam.center)
+    feats = np.random.default_rng(seed).normal(size=(g.count, 10)).astype(np.float32)
+    bg = np.array([0.2, 0.5, 1.0])
+    fast = render(proj, bins, rgb, cam.width, cam.height, bg)
+    ref = reference_render(ref_proj, rgb, cam.width, cam.height, bg)
+    assert fast.alpha.max() > 0.9  # the scene covers the view: the test compares something
+    for name in ("image", "alpha", "depth"):
+        diff = np.abs(getattr(fast, name) - getattr(ref, name)).max()
+        assert diff <= 1e-4, (name, diff)
+    f_fast = render(proj, bins, feats, cam.width, cam.height).image
+    f_ref = reference_render(ref_proj, feats, cam.width, cam.height).image
+    assert np.abs(f_fast - f_ref).max() <= 1e-4
+
+
+def test_sh_degree_changes_colour_with_view(tmp_path):
+    g, r = _scene(tmp_path, degree=3)
+    a = sh_to_rgb(r.sh, r.means, np.array([0.0, -3.0, 0.0]))
+    b = sh_to_rgb(r.sh, r.means, np.array([3.0, 0.0, 0.0]))
+    assert np.abs(a - b).max() > 0.05
+    g0, r0 = _scene(tmp_path, degree=0, seed=5)
+    np.testing.assert_allclose(
+        sh_to_rgb(r0.sh, r0.means, np.zeros(3)),
+        np.maximum(0.5 + 0.28209479177387814 * r0.sh[:, 0], 0),
+        atol=1e-6,
+    )
+
+
+def test_blend_weights_equal_reference_weights(tmp_path):
+    g, r = _scene(tmp_path, n=150, seed=4)
+    cam = front_camera(40, 33)
+    proj, bins = r.prepare(cam)
+    indptr, ids, vals = blend_weights(proj, bins, cam.width, cam.height)
+    ref = reference_weights(proj, cam.width, cam.height)
+    assert len(ref) == len(indptr) - 1
+    for p, pix in enumerate(ref):
+        a, b = indptr[p], indptr[p + 1]
+        assert list(ids[a:b]) == [gid for gid, _ in pix]
+        np.testing.assert_allclose(vals[a:b], [w for _, w in pix], atol=1e-5)
+
+
+def test_naive_backward_is_the_transpose(tmp_path):
+    g, r = _scene(tmp_path, n=150, seed=6)
+    cam = front_camera(40, 33)
+    proj, bins = r.prepare(cam)
+    indptr, ids, vals = blend_weights(proj, bins, cam.width, cam.height)
+    W = np.zeros((cam.width * cam.height, g.count))
+    for p in range(len(indptr) - 1):
+        W[p, ids[indptr[p] : indptr[p + 1]]] += vals[indptr[p] : indptr[p + 1]]
+    grad_img = np.random.default_rng(0).normal(size=(cam.height, cam.width, 4)).astype(np.float32)
+    got = render_backward(proj, bins, grad_img, g.count)
+    np.testing.assert_allclose(got, W.T @ grad_img.reshape(-1, 4), atol=1e-4)
+
+
+def test_camera_behind_sees_nothing(tmp_path):
+    g, r = _scene(tmp_path)
+    cam = front_camera()
+    cam.t = cam.t + np.array([0, 0, -10.0])  # everything is now behind the near plane
+    out = r.render_rgb(cam, background=(1, 0, 0))
+    assert out.alpha.max() == 0 and np.all(out.image[..., 0] == 1)
+
+
+def test_bins_are_front_to_back(tmp_path):
+    g, r = _scene(tmp_path, n=400)
+    cam = front_camera(64, 48)
+    proj = project(r.means, r.quats, r.scales, r.opacities, r.valid, cam)
+    bins = bin_tiles(proj, cam.width, cam.height)
+    for t in range(len(bins.offsets) - 1):
+        d = proj.depths[bins.ids[bins.offsets[t] : bins.offsets[t + 1]]]
+        assert np.all(np.diff(d) >= 0)
+
+
+def test_gpu_path_is_optional(tmp_path):
+    from stages.render.gsplat_backend import auto_backend, gsplat_available, padded_channels
+
+    assert [padded_channels(n) for n in (3, 6, 10, 16, 300)] == [3, 8, 16, 16, 512]
+    g, _ = _scene(tmp_path)
+    r = Rasterizer.from_gaussians(g, backend=auto_backend())
+    assert r.backend_name == ("gsplat" if gsplat_available() else "cpu")
