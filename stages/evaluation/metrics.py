@@ -1,8 +1,13 @@
 """The paper's 2D metrics (IoU, mPA, mP per image) and our 3D IoU over Gaussians.
 
-A ratio whose denominator is empty (0/0) counts as 1 when prediction and ground truth agree that
-the class is absent, and as 0 otherwise; so an empty prediction of an empty ground truth is
-perfect, and an empty prediction of a present object scores 0 on the object.
+Per image, over the two classes foreground and background:
+- IoU is the foreground's; an image where neither prediction nor ground truth has foreground
+  scores 1 (they agree that the target is absent).
+- mPA is the mean of the classes' recalls. A class absent from the ground truth has no recall
+  (there is nothing of it to find): it is left out of the mean, not counted 0 or 1.
+- mP is the mean of the classes' precisions. A class absent from both prediction and ground
+  truth has no precision and is left out; a class the ground truth has but the prediction
+  lacks scores 0 (all of it was missed).
 """
 
 from __future__ import annotations
@@ -12,20 +17,19 @@ from dataclasses import dataclass
 import numpy as np
 
 
-def _ratio(num: float, den: float, both_empty: bool) -> float:
-    if den > 0:
-        return float(num / den)
-    return 1.0 if both_empty else 0.0
-
-
 @dataclass
 class Scores:
     iou: float
-    mpa: float  # mean of foreground and background recall
-    mp: float  # mean of foreground and background precision
+    mpa: float  # mean of the defined class recalls
+    mp: float  # mean of the defined class precisions
 
     def as_dict(self) -> dict[str, float]:
         return {"iou": self.iou, "mpa": self.mpa, "mp": self.mp}
+
+
+def _mean_defined(values: list[float | None]) -> float:
+    defined = [v for v in values if v is not None]
+    return float(np.mean(defined))  # every image has at least one class in its ground truth
 
 
 def image_scores(pred: np.ndarray, gt: np.ndarray) -> Scores:
@@ -37,18 +41,16 @@ def image_scores(pred: np.ndarray, gt: np.ndarray) -> Scores:
             pred.astype(np.uint8), (gt.shape[1], gt.shape[0]), interpolation=cv2.INTER_NEAREST
         ).astype(bool)
     p, g = pred.astype(bool), gt.astype(bool)
-    tp = float(np.sum(p & g))
-    fp = float(np.sum(p & ~g))
-    fn = float(np.sum(~p & g))
-    tn = float(np.sum(~p & ~g))
-    fg_empty = bool(not p.any() and not g.any())
-    bg_empty = bool(p.all() and g.all())
-    iou = _ratio(tp, tp + fp + fn, fg_empty)
-    recall_fg = _ratio(tp, tp + fn, fg_empty)
-    recall_bg = _ratio(tn, tn + fp, bg_empty)
-    prec_fg = _ratio(tp, tp + fp, fg_empty)
-    prec_bg = _ratio(tn, tn + fn, bg_empty)
-    return Scores(iou, (recall_fg + recall_bg) / 2, (prec_fg + prec_bg) / 2)
+    recalls: list[float | None] = []
+    precisions: list[float | None] = []
+    for pc, gc in ((p, g), (~p, ~g)):  # foreground, then background
+        hit = float(np.sum(pc & gc))
+        n_gt, n_pred = float(gc.sum()), float(pc.sum())
+        recalls.append(hit / n_gt if n_gt else None)
+        precisions.append(hit / n_pred if n_pred else (None if not n_gt else 0.0))
+    union = float(np.sum(p | g))
+    iou = float(np.sum(p & g)) / union if union else 1.0
+    return Scores(iou, _mean_defined(recalls), _mean_defined(precisions))
 
 
 def mean_scores(scores: list[Scores]) -> Scores:
@@ -60,7 +62,8 @@ def mean_scores(scores: list[Scores]) -> Scores:
 
 
 def iou_3d(selected: np.ndarray, target: np.ndarray, weight: np.ndarray | None = None) -> float:
-    """IoU of two Gaussian sets ([G] bool), counting each Gaussian once or by `weight`."""
+    """IoU of two Gaussian sets ([G] bool), counting each Gaussian once or by `weight`; two
+    empty sets agree (1)."""
     w = np.ones(selected.shape) if weight is None else weight
     union = float(w[selected | target].sum())
-    return _ratio(float(w[selected & target].sum()), union, not selected.any() and not target.any())
+    return float(w[selected & target].sum()) / union if union > 0 else 1.0

@@ -33,10 +33,31 @@ def test_empty_prediction_and_empty_ground_truth():
     assert s.iou == 0 and s.mpa == pytest.approx(0.5) and s.mp == pytest.approx((0 + 3 / 4) / 2)
     s = image_scores(empty, empty)  # nothing there, nothing predicted: perfect
     assert (s.iou, s.mpa, s.mp) == (1.0, 1.0, 1.0)
-    s = image_scores(gt, empty)  # a false alarm on an empty ground truth
-    assert s.iou == 0 and s.mpa == pytest.approx((0 + 3 / 4) / 2) and s.mp == pytest.approx(0.5)
+    # A false alarm on an empty ground truth: the foreground has no recall to score (nothing
+    # to find), so mPA is the background's recall alone; the false pixel costs precision.
+    s = image_scores(gt, empty)
+    assert s.iou == 0 and s.mpa == pytest.approx(3 / 4) and s.mp == pytest.approx((0 + 1) / 2)
     full = np.ones((2, 2), bool)
     assert image_scores(full, full).as_dict() == {"iou": 1.0, "mpa": 1.0, "mp": 1.0}
+
+
+def test_a_class_absent_from_the_ground_truth_is_left_out_of_the_means():
+    full = np.ones((2, 2), bool)
+    pred = _m([[1, 1], [1, 0]])  # one pixel wrongly called background
+    s = image_scores(pred, full)
+    # background recall is undefined (no background to find): mPA is the foreground's recall
+    assert s.mpa == pytest.approx(3 / 4)
+    # foreground precision 3/3; background precision 0/1 (its one pixel is foreground)
+    assert s.mp == pytest.approx((1 + 0) / 2)
+    assert s.iou == pytest.approx(3 / 4)
+    # a class the ground truth has but the prediction lacks: recall 0 and precision 0
+    half = _m([[1, 1], [0, 0]])
+    s = image_scores(full, half)
+    assert s.mpa == pytest.approx((1 + 0) / 2)  # fg recall 2/2, bg recall 0/2
+    assert s.mp == pytest.approx((2 / 4 + 0) / 2)  # fg precision 2/4, bg missed entirely
+    # background absent from both: left out of both means
+    s = image_scores(full, full)
+    assert (s.mpa, s.mp) == (1.0, 1.0)
 
 
 def test_prediction_is_resized_to_the_ground_truth():
