@@ -57,9 +57,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("goi: interrupted", file=sys.stderr)
         code = 130
-    except click.ClickException as e:
-        e.show()
+    except click.exceptions.NoArgsIsHelpError as e:
+        e.show()  # `goi` alone, or a group without a command: the help
         code = 2
+    except click.ClickException as e:
+        # One line, like goi's own errors; click names the option or argument.
+        hint = ""
+        if isinstance(e, click.UsageError) and e.ctx is not None:
+            hint = f" (see {e.ctx.command_path} --help)"
+        print(f"goi: error: {' '.join(e.format_message().split())}{hint}", file=sys.stderr)
+        code = e.exit_code if e.exit_code else 2
     except GoiError as e:
         if debug:
             traceback.print_exc()

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
+from stages.core.params import Range, field_choice, field_range
+
 if TYPE_CHECKING:
     from stages.scene.scene import Scene
 
@@ -43,6 +45,23 @@ def _base_type(tp: Any) -> Any:
     return tp
 
 
+class Number(click.ParamType):
+    """An int or float option checked against its field's Range while parsing; floats must be
+    finite (click's own FloatRange lets NaN through)."""
+
+    def __init__(self, base: type, rng: Range | None):
+        self.base = click.INT if base is int else click.FLOAT
+        self.rng = rng or Range()
+        self.name = self.base.name
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        v = self.base.convert(value, param, ctx)
+        why = self.rng.problem(v)
+        if why:
+            self.fail(why, param, ctx)
+        return v
+
+
 def dataclass_options(cls: type, skip: tuple[str, ...] = ()) -> Callable:
     """Decorate a command with one option per field of `cls` (snake_case -> --kebab-case)."""
     docs = field_docs(cls)
@@ -57,6 +76,10 @@ def dataclass_options(cls: type, skip: tuple[str, ...] = ()) -> Callable:
             required = f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
             default = None if required else f.default
             help_ = docs.get(f.name, "")
+            rng = field_range(cls, f.name)
+            if rng is not None:
+                help_ += f" Range: {rng.describe()}."
+            choice = field_choice(cls, f.name)
             if tp is bool:
                 fn = click.option(flag, f.name, is_flag=True, default=default, help=help_)(fn)
             elif tp is Path:
@@ -73,7 +96,13 @@ def dataclass_options(cls: type, skip: tuple[str, ...] = ()) -> Callable:
                 fn = click.option(
                     flag,
                     f.name,
-                    type=tp,
+                    type=(
+                        Number(tp, rng)
+                        if tp in (int, float)
+                        else click.Choice(choice.values)
+                        if choice
+                        else tp
+                    ),
                     required=required,
                     default=default,
                     show_default=True,

@@ -8,8 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 from stages.core.errors import GoiError
+from stages.core.params import AT_LEAST_1, check_params
 from stages.core.report import SILENT, Report
 from stages.evaluation.metrics import image_scores, mean_scores
 from stages.evaluation.report import esc, rel, write_page
@@ -32,7 +34,7 @@ DEMO_SCENE = Path(__file__).resolve().parents[2] / "goi_cli" / "demo_scene"
 
 @dataclass
 class DemoParams:
-    iterations: int = 1500
+    iterations: Annotated[int, AT_LEAST_1] = 1500
     """fit-field iterations (paper: 1500)."""
     prompts: str | None = None
     """Comma-separated prompt ids of the demo scene to run (default: all of them)."""
@@ -72,6 +74,7 @@ def _chosen_prompts(prompts: list[Prompt], wanted: str | None) -> list[Prompt]:
 
 
 def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult:
+    check_params(p)
     scene_dir = DEMO_SCENE
     if not (scene_dir / "point_cloud.ply").is_file():
         raise GoiError(f"{scene_dir}: the demo scene is missing from this installation")

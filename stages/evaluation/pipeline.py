@@ -14,12 +14,14 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 from stages import __version__
 from stages.core.artifacts import command_line, write_json
 from stages.core.errors import GoiError
+from stages.core.params import AT_LEAST_1, COSINE, SEED, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.evaluation.metrics import Scores, image_scores, iou_3d, mean_scores
 from stages.evaluation.room import Prompt, Room, load_room
@@ -45,13 +47,13 @@ from stages.semantics.fit_field import FieldRun, fit_field
 
 @dataclass
 class EvalParams:
-    iterations: int = 1500
+    iterations: Annotated[int, AT_LEAST_1] = 1500
     """fit-field iterations for each field (paper: 1500)."""
-    entries: int = 300
+    entries: Annotated[int, Range(ge=2)] = 300
     """Codebook entries (paper: 300)."""
-    threshold: float = THRESHOLD
+    threshold: Annotated[float, COSINE] = THRESHOLD
     """The fixed cosine threshold (goi's default; not to be tuned on test masks)."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """Random seed of every stage."""
 
 
@@ -209,6 +211,7 @@ def run_eval(
     report: Report = SILENT,
 ) -> EvalResult:
     """Run every variant on the room and write report.json (and the HTML page)."""
+    check_params(p)
     variants = _chosen_variants(run.variants)
     for path in (run.out, run.html):
         if path is not None and Path(path).exists() and not run.force:

@@ -18,6 +18,7 @@ import numpy as np
 
 from stages.core.artifacts import atomic_path, open_h5, put, sha256_file, stamp
 from stages.core.errors import GoiError
+from stages.core.params import check_params
 from stages.core.report import SILENT, Report
 from stages.query.osh import Counts, Hyperplane, HyperplaneParams, count_pixels, fit_osh
 from stages.query.prompts import safe_name
@@ -99,7 +100,7 @@ def fit_hyperplane(
 ) -> tuple[Hyperplane, bool]:
     """Fit (or reuse) the prompt's plane and store it in run.out; returns it and whether it
     came from the artifact."""
-    p.check()
+    check_params(p)
     out = Path(run.out)
     existing = read_hyperplanes(out) if out.exists() else {}
     field_sha = field_key(field_path)

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 from stages.core.artifacts import write_png
 from stages.core.errors import GoiError, check_choice
+from stages.core.params import COSINE, Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.query.osh import THRESHOLD, Hyperplane, threshold_plane
 from stages.query.prompts import view_file_name
@@ -28,9 +30,9 @@ HIGHLIGHT = np.array([1.0, 0.15, 0.1], np.float32)
 
 @dataclass
 class MaskParams:
-    mode: str = "hyperplane"
+    mode: Annotated[str, Choice(MODES)] = "hyperplane"
     """hyperplane: the fitted OSH; threshold: the fixed cosine threshold (the baseline)."""
-    threshold: float = THRESHOLD
+    threshold: Annotated[float, COSINE] = THRESHOLD
     """Cosine threshold of threshold mode."""
 
 
@@ -105,6 +107,7 @@ def render_masks(
     report: Report = SILENT,
 ) -> list[Path]:
     """Write the masks (and overlays) of `cams`; returns the mask paths."""
+    check_params(p)
     plane = plane_for(plane, p.mode, renderer.field, p.threshold)
     out = Path(run.out)
     out.mkdir(parents=True, exist_ok=True)

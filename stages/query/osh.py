@@ -14,10 +14,11 @@ works on those N weighted points (`Counts`), and the plane's decision is one sco
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from typing import Annotated
 
 import numpy as np
 
-from stages.core.errors import GoiError, check_choice
+from stages.core.params import AT_LEAST_1, COSINE, FRACTION, NON_NEGATIVE, POSITIVE, Choice
 
 #: The fixed cosine threshold between a decoded feature and the prompt's embedding: the
 #: baseline's cut and the hyperplane's starting bias. One value for every prompt and scene,
@@ -32,30 +33,25 @@ LOSSES = ("logistic", "hinge")
 class HyperplaneParams:
     """How a prompt's plane is fitted; recorded with the plane (and part of its cache key)."""
 
-    loss: str = "logistic"
+    loss: Annotated[str, Choice(LOSSES)] = "logistic"
     """logistic: the paper's weighted logistic regression; hinge: the authors' code."""
-    positive_weight: float = 0.1
+    positive_weight: Annotated[float, POSITIVE] = 0.1
     """w on the positive (target) term of the logistic loss (paper: 1/10)."""
-    threshold: float = THRESHOLD
+    threshold: Annotated[float, COSINE] = THRESHOLD
     """Fixed cosine threshold: the starting bias b = -threshold, and the baseline's cut."""
-    lr: float = 0.01
+    lr: Annotated[float, POSITIVE] = 0.01
     """SGD learning rate (authors: 0.01)."""
-    steps: int = 8000
+    steps: Annotated[int, NON_NEGATIVE] = 8000
     """At most this many full-batch steps (authors: 8000)."""
-    target_iou: float = 0.9
+    target_iou: Annotated[float, FRACTION] = 0.9
     """Stop once the plane's mask reaches this IoU with the RES mask (authors: 0.9)."""
-    fit_views: int = 1
+    fit_views: Annotated[int, AT_LEAST_1] = 1
     """Number of views to fit on (paper: 1): those whose RES mask is largest."""
     fit_on: str | None = None
     """Comma-separated views to fit on, instead of choosing them."""
 
     def config(self) -> dict:
         return asdict(self)
-
-    def check(self) -> None:
-        check_choice("--loss", self.loss, LOSSES)
-        if self.steps < 0 or self.lr <= 0:
-            raise GoiError("--steps must be >= 0 and --lr positive")
 
 
 @dataclass

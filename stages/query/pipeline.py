@@ -9,9 +9,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 from stages.core.artifacts import input_digest
-from stages.core.errors import check_choice
+from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
@@ -45,7 +46,7 @@ class PromptSources:
 
 @dataclass
 class QueryParams:
-    mode: str = "hyperplane"
+    mode: Annotated[str, Choice(MODES)] = "hyperplane"
     """hyperplane: fit the OSH with RES masks; threshold: the fixed threshold (no RES needed)."""
 
 
@@ -55,7 +56,7 @@ class QueryRun:
     """Output directory: hyperplanes.h5 (the prompt cache) and one directory per prompt."""
     views: str | None = None
     """Comma-separated views to render masks for (default: the test split, else all)."""
-    export: str = "subset"
+    export: Annotated[str, Choice(EXPORTS)] = "subset"
     """PLY to write: subset (the Gaussians of interest), invert (the scene without them),
     highlight (the scene with them recoloured) or none."""
     color: str = "red"
@@ -88,8 +89,8 @@ def run_query(
     report: Report = SILENT,
 ) -> QueryResult:
     prompt = check_prompt(prompt)
-    check_choice("--mode", qp.mode, MODES)
-    check_choice("--export", run.export, EXPORTS)
+    for params in (hp, qp, run):
+        check_params(params)
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
     text, text_source = text_embedding(

@@ -6,12 +6,14 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 from stages.core.arrays import normalise
 from stages.core.artifacts import input_digest, open_h5, put, write_h5
 from stages.core.errors import GoiError
+from stages.core.params import AT_LEAST_1, SEED, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.semantics.features import load_features
 from stages.semantics.kmeans import even_subset, sample_cells, spherical_kmeans
@@ -21,17 +23,17 @@ SCHEMA = "goi.codebook"
 
 @dataclass
 class CodebookParams:
-    entries: int = 300
+    entries: Annotated[int, Range(ge=2)] = 300
     """N, the number of codebook entries (the paper's default)."""
-    views: int = 40
+    views: Annotated[int, AT_LEAST_1] = 40
     """Feature maps to sample from, evenly spaced over the training views (paper: 30-50)."""
-    samples: int = 200_000
+    samples: Annotated[int, AT_LEAST_1] = 200_000
     """Feature cells drawn from those views for clustering."""
-    iterations: int = 10
+    iterations: Annotated[int, AT_LEAST_1] = 10
     """k-means iterations (the authors' code uses 10)."""
     two_stage: bool = False
     """The authors' variant: k-means(80) on every 8th view, then k-means(N) on those centres."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """Random seed; the same seed and inputs give the same codebook."""
 
 
@@ -46,10 +48,9 @@ class CodebookRun:
 def init_codebook(
     features_path: Path, p: CodebookParams, run: CodebookRun, report: Report = SILENT
 ) -> Path:
+    check_params(p)
     fm = load_features(features_path)
     rng = np.random.default_rng(p.seed)
-    if p.entries < 2:
-        raise GoiError("--entries must be at least 2")
     if p.two_stage:
         firsts = []
         for i, v in enumerate(fm.views[::8]):

@@ -22,12 +22,13 @@ import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
 from stages.core.artifacts import check_writable, read_json
 from stages.core.errors import GoiError
+from stages.core.params import Range, check_params
 from stages.semantics.bundle import MANIFEST, load_bundle
 
 # OpenAI CLIP's preprocessing, used when the checkpoint has no preprocessor_config.json.
@@ -38,11 +39,11 @@ TOLERANCE = 1e-4
 
 @dataclass
 class ModelExportParams:
-    image_size: int = 0
+    image_size: Annotated[int, Range(ge=0, le=4096)] = 0
     """CLIP only: square input size of the image encoder (a multiple of the patch size); the
     position embeddings are resampled to it. 0: the checkpoint's own size. Larger sizes give
     finer dense features."""
-    opset: int = 17
+    opset: Annotated[int, Range(ge=14, le=23)] = 17
     """ONNX opset version."""
 
 
@@ -301,6 +302,7 @@ def _export_sentence(src: Path, tmp: Path, opts: ModelExportParams, modules: lis
 
 def export_model(src: Path, opts: ModelExportParams, run: ModelExportRun) -> Path:
     """Write a bundle directory for the checkpoint at `src`; returns the bundle path."""
+    check_params(opts)
     src = Path(src)
     if not src.is_dir():
         raise GoiError(f"SOURCE: {src} is not a checkpoint directory")

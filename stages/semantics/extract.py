@@ -12,12 +12,14 @@ import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import h5py
 import numpy as np
 
 from stages.core.artifacts import check_writable, put, sha256_files, stamp
 from stages.core.errors import GoiError
+from stages.core.params import AT_LEAST_1, Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.scene.scene import Scene
 from stages.semantics.feature_files import find_feature_file, load_feature_file, resample
@@ -26,9 +28,9 @@ from stages.semantics.features import SCHEMA
 
 @dataclass
 class ExtractParams:
-    split: str = "train"
+    split: Annotated[str, Choice(("train", "test", "all"))] = "train"
     """Which views to extract: train, test or all."""
-    max_side: int = 160
+    max_side: Annotated[int, AT_LEAST_1] = 160
     """Feature maps larger than this on their longer side are area-downsampled to it: fit-field
     trains on feature cells, and finer cells cost time without adding language detail."""
 
@@ -115,6 +117,7 @@ def import_features(
     scene: Scene, src: Path, p: ExtractParams, run: ExtractRun, report: Report = SILENT
 ) -> Path:
     """Write the features artifact from per-image `.npy` / `.pt` files in `src`."""
+    check_params(p)
     if not src.is_dir():
         raise GoiError(f"--from: {src} is not a directory")
     cams = scene.views(p.split)
@@ -158,6 +161,7 @@ def encode_views(
     scene: Scene, bundle_dir: Path, p: ExtractParams, run: ExtractRun, report: Report = SILENT
 ) -> Path:
     """Write the features artifact by running a bundle's image encoder on the images."""
+    check_params(p)
     from stages.semantics.bundle import load_bundle
 
     bundle = load_bundle(bundle_dir)

@@ -11,13 +11,14 @@ import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import torch
 
 from stages.core.artifacts import check_writable, input_digest
 from stages.core.errors import GoiError
+from stages.core.params import NON_NEGATIVE, check_params
 from stages.core.report import SILENT, Report
 from stages.scene.scene import Scene
 from stages.semantics.blend_cache import build_or_load
@@ -35,7 +36,7 @@ class FieldRun:
     """Field artifact to write (HDF5, schema goi.field)."""
     cache: Path | None = None
     """Blend cache file; default blend_cache.h5 beside the output. Reused when it matches."""
-    checkpoint_every: int = 250
+    checkpoint_every: Annotated[int, NON_NEGATIVE] = 250
     """Write <out>.ckpt every this many iterations (0: never)."""
     resume: bool = False
     """Continue from <out>.ckpt when it exists (and was made from the same inputs)."""
@@ -82,9 +83,9 @@ def fit_field(
     run: FieldRun,
     report: Report = SILENT,
 ) -> Path:
+    check_params(p)
+    check_params(run)
     check_writable(run.out, run.force)
-    if p.iterations < 1 or p.sem_dim < 1 or p.views_per_step < 1:
-        raise GoiError("--iterations, --sem-dim and --views-per-step must be positive")
     g = scene.gaussians
     views = [c.name for c in scene.views("train")]
     fm = load_features(features_path, views)
