@@ -116,16 +116,17 @@ def inspect_cmd(files: tuple[str, ...]) -> None:
     """
     from stages.inspect import inspect_file
 
-    total = 0
+    bad = []
     for path in files:
         lines, problems = inspect_file(path)
         click.echo("\n".join(lines))
         for p in problems:
             click.echo(f"  problem       {p}")
         click.echo(f"  {len(problems)} errors")
-        total += len(problems)
-    if total:
-        raise GoiError(f"{total} problem(s) found")
+        if problems:
+            bad.append(f"{path} ({len(problems)} problem{'s' if len(problems) > 1 else ''})")
+    if bad:
+        raise GoiError(f"{', '.join(bad)}: see the problems above")
 
 
 def register(group: click.Group) -> None:

@@ -14,6 +14,7 @@ from goi_cli.options import (
     scene_options,
 )
 from goi_cli.report import TERMINAL
+from stages.core.staging import staged_outputs
 from stages.query.export_ply import PlyEditParams, PlyExportRun
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.masks import MaskParams, MaskRun
@@ -90,14 +91,16 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
 
     scene = load_scene_from(kw)
     p, run = build(MaskParams, kw), build(MaskRun, kw)
-    plane = load_plane(hyperplanes, prompt)
+    f = load_field_for(field, scene.ply_digest())
+    plane = load_plane(hyperplanes, prompt, field, f.codebook.shape[0])
     if camera_file is not None:
         cams = load_cameras(camera_file)
         chosen = pick_cameras({c.name: c for c in cams}, cams, run.views)
     else:
         chosen = default_cameras(scene, run.views)
-    renderer = SemanticRenderer(scene.gaussians, load_field_for(field, scene.ply_digest()))
-    written = render_masks(renderer, plane, chosen, p, run, TERMINAL)
+    renderer = SemanticRenderer(scene.gaussians, f)
+    with staged_outputs():  # every mask and overlay, or none
+        written = render_masks(renderer, plane, chosen, p, run, TERMINAL)
     click.echo(f"masks ({len(written)} views, {p.mode} mode): {run.out}")
 
 
@@ -108,6 +111,7 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
 @hyperplanes_option
 @click.option(
     "--mode",
+    type=click.Choice(("hyperplane", "threshold")),
     default="hyperplane",
     show_default=True,
     help="hyperplane (the fitted OSH) or threshold (the fixed cosine threshold).",
@@ -119,7 +123,8 @@ def select_cmd(
 ) -> None:
     """Select the 3D Gaussians of interest: those whose decoded feature is on the plane's
     positive side. Writes a selection artifact for export-ply."""
-    from stages.core.artifacts import input_digest
+    from stages.core.artifacts import check_writable, input_digest
+    from stages.core.files import refuse_inputs
     from stages.query.hyperplanes import load_plane
     from stages.query.masks import plane_for
     from stages.query.osh import THRESHOLD
@@ -127,8 +132,12 @@ def select_cmd(
     from stages.semantics.field import load_field_for
 
     scene = load_scene_from(kw)
+    check_writable(out, force)
+    refuse_inputs({"--out": out}, [field, hyperplanes, scene.ply_path])
     f = load_field_for(field, scene.ply_digest())
-    plane = plane_for(load_plane(hyperplanes, prompt), mode, f, THRESHOLD)
+    plane = plane_for(
+        load_plane(hyperplanes, prompt, field, f.codebook.shape[0]), mode, f, THRESHOLD
+    )
     sel = select(f, plane)
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field)}
     write_selection(out, sel, plane, mode, scene.ply_digest(), inputs, force)
@@ -173,7 +182,8 @@ def query_cmd(field: Path, prompt: str, **kw) -> None:
     scene = load_scene_from(kw)
     src = build(PromptSources, kw)
     hp, qp, run = build(HyperplaneParams, kw), build(QueryParams, kw), build(QueryRun, kw)
-    r = run_query(scene, field, prompt, src, hp, qp, run, report=TERMINAL)
+    with staged_outputs():  # masks, selection, PLY and the plane appear together, or not at all
+        r = run_query(scene, field, prompt, src, hp, qp, run, report=TERMINAL)
     click.echo(f"prompt:     {r.prompt}")
     if qp.mode == "threshold":
         click.echo(f"hyperplane: none (--mode threshold: cosine > {hp.threshold})")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import h5py
@@ -12,6 +13,7 @@ import numpy as np
 
 from schemas import validate_file
 from stages.core.errors import GoiError
+from stages.core.files import regular_file
 from stages.scene.gaussians import load_ply
 
 
@@ -74,10 +76,36 @@ def _short(value: object) -> str:
     return text if len(text) < 80 else text[:77] + "..."
 
 
+def _semantic_problems(path: Path, schema: str) -> list[str]:
+    """What the artifact's own reader refuses beyond its schema (values, shapes, cross
+    references): the very checks every command runs before using it."""
+    from stages.query.hyperplanes import read_hyperplanes
+    from stages.query.selection import load_selection
+    from stages.semantics.blend_cache import BlendCache
+    from stages.semantics.codebook import load_codebook
+    from stages.semantics.features import load_features
+    from stages.semantics.field import load_field
+
+    readers: dict[str, Callable[[Path], object]] = {
+        "goi.features": load_features,
+        "goi.codebook": load_codebook,
+        "goi.field": load_field,
+        "goi.blend_cache": BlendCache.load,
+        "goi.hyperplanes": read_hyperplanes,
+        "goi.selection": load_selection,
+    }
+    reader = readers.get(schema)
+    if reader is None:
+        return []
+    try:
+        reader(path)
+    except GoiError as e:
+        return [str(e)]
+    return []
+
+
 def inspect_file(path: str | os.PathLike[str]) -> tuple[list[str], list[str]]:
-    p = Path(path)
-    if not p.is_file():
-        raise GoiError(f"{p}: no such file")
+    p = regular_file(path, "PLY or HDF5 file")
     with open(p, "rb") as fh:
         magic = fh.read(8)
     if magic.startswith(b"ply"):
@@ -85,7 +113,12 @@ def inspect_file(path: str | os.PathLike[str]) -> tuple[list[str], list[str]]:
     if magic == b"\x89HDF\r\n\x1a\n":
         schema, problems = validate_file(p)
         lines = [f"{p}: HDF5 artifact {schema or '(no goi schema)'}"]
-        with h5py.File(p, "r") as f:
-            lines += _describe_h5(f)
+        try:
+            with h5py.File(p, "r") as f:
+                lines += _describe_h5(f)
+        except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
+            return lines, problems or [f"not a readable HDF5 file ({str(e)[:200]})"]
+        if not problems and schema:
+            problems = _semantic_problems(p, schema)
         return lines, problems
     raise GoiError(f"{p}: neither a PLY nor an HDF5 file")

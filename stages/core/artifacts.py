@@ -22,6 +22,8 @@ import numpy as np
 
 from stages import __version__
 from stages.core.errors import GoiError
+from stages.core.files import check_output_name, file_in_the_way
+from stages.core.staging import current_stage
 
 #: argv of the running command, recorded in every artifact (the CLI sets it; tests may not).
 _COMMAND: list[str] = []
@@ -64,9 +66,16 @@ def provenance(inputs: dict[str, str]) -> dict[str, str]:
 
 def check_writable(path: Path, force: bool) -> None:
     """Refuse to clobber an existing output and fail early on an unwritable directory."""
-    if path.exists() and not force:
+    path = Path(path)
+    check_output_name(path)
+    if path.is_dir():
+        raise GoiError(f"{path}: is a directory; give the path of a file to write")
+    if (path.exists() or path.is_symlink()) and not force:
         raise GoiError(f"{path}: already exists; pass --force to overwrite it")
     parent = path.parent if str(path.parent) else Path(".")
+    blocker = file_in_the_way(parent)
+    if blocker is not None:
+        raise GoiError(f"{path}: {blocker} is a file, not a directory")
     if not parent.is_dir():
         raise GoiError(f"{path}: directory {parent} does not exist")
     if not os.access(parent, os.W_OK):
@@ -81,10 +90,15 @@ def _umask() -> int:
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str], force: bool = False) -> Iterator[Path]:
-    """Yield a temporary path; on success it is fsynced and renamed to `path`, else removed."""
+    """Yield a temporary path; on success it is fsynced and renamed to `path` (at the end of
+    the current `staged_outputs()` block, if one is open), else removed."""
     dest = Path(path)
     check_writable(dest, force)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    try:
+        # the temporary name is short: the destination's own name may be at the length limit
+        fd, tmp_name = tempfile.mkstemp(prefix=".goi-", suffix=".tmp", dir=dest.parent)
+    except OSError as e:
+        raise GoiError(f"{dest}: could not write ({e.strerror or e})") from None
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -92,6 +106,10 @@ def atomic_path(path: str | os.PathLike[str], force: bool = False) -> Iterator[P
         yield tmp
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        stage = current_stage()
+        if stage is not None:  # renamed with the command's other outputs, at its end
+            stage.add(tmp, dest)
+            return
         os.replace(tmp, dest)
         with contextlib.suppress(OSError):  # persist the rename itself; not possible everywhere
             dfd = os.open(dest.parent, os.O_RDONLY)
@@ -156,19 +174,6 @@ def open_h5(path: str | os.PathLike[str], schema: str) -> Iterator[h5py.File]:
 def write_json(path: str | os.PathLike[str], obj: Any, force: bool = False) -> None:
     with atomic_path(path, force) as tmp:
         tmp.write_text(json.dumps(obj, indent=1, sort_keys=False) + "\n")
-
-
-def read_json(path: str | os.PathLike[str], missing: str = "missing") -> Any:
-    """A JSON document; a missing or malformed file is a GoiError naming it."""
-    p = Path(path)
-    try:
-        return json.loads(p.read_text())
-    except FileNotFoundError:
-        raise GoiError(f"{p}: {missing}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise GoiError(f"{p}: not valid JSON ({e})") from None
-    except OSError as e:
-        raise GoiError(f"{p}: cannot read ({e.strerror or e})") from None
 
 
 def write_png(path: str | os.PathLike[str], image: np.ndarray, force: bool = False) -> None:

@@ -113,3 +113,15 @@ def check_params(params: object) -> None:
             why = (field_range(cls, f.name) or Range()).problem(value)
         if why:
             raise GoiError(f"{option_name(f.name)}: {why}")
+
+
+def name_list(text: str, option: str) -> list[str]:
+    """A comma-separated list of names ('v001,v007'), each given once; an empty list or an
+    empty item (',', 'a,,b') is refused, naming the option."""
+    names = [n.strip() for n in text.split(",")]
+    if not names or any(not n for n in names):
+        raise GoiError(f"{option}: {text!r} is not a comma-separated list of names")
+    dup = next((n for n in names if names.count(n) > 1), None)
+    if dup is not None:
+        raise GoiError(f"{option}: {dup!r} is named more than once")
+    return names

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Annotated
 
 from stages.core.errors import GoiError
+from stages.core.files import make_dir
 from stages.core.params import AT_LEAST_1, check_params
 from stages.core.report import SILENT, Report
 from stages.evaluation.metrics import image_scores, mean_scores
@@ -79,7 +80,7 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
     if not (scene_dir / "point_cloud.ply").is_file():
         raise GoiError(f"{scene_dir}: the demo scene is missing from this installation")
     out = Path(run.out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dir(out, "--out")
     scene = load_scene(scene_dir)
     prompts = _chosen_prompts(load_prompts(scene_dir), p.prompts)
     report.log(f"demo: {scene.gaussians.count} Gaussians, {len(scene.train)} training views")

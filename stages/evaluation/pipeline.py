@@ -18,12 +18,16 @@ from typing import Annotated
 
 import numpy as np
 
+from schemas import validate_json
 from stages import __version__
-from stages.core.artifacts import command_line, write_json
+from stages.core.artifacts import check_writable, command_line, write_json
 from stages.core.errors import GoiError
+from stages.core.files import make_dir, refuse_inputs
 from stages.core.params import AT_LEAST_1, COSINE, SEED, Range, check_params
 from stages.core.report import SILENT, Report
+from stages.core.staging import staged_outputs
 from stages.evaluation.metrics import Scores, image_scores, iou_3d, mean_scores
+from stages.evaluation.report import eval_page
 from stages.evaluation.room import Prompt, Room, load_room
 from stages.evaluation.variants import (
     FIELD_KIND,
@@ -39,7 +43,8 @@ from stages.query.res import ResFiles
 from stages.render.rasterizer import Rasterizer
 from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
 from stages.semantics.decode import SemanticRenderer
-from stages.semantics.extract import ExtractParams, ExtractRun, import_features
+from stages.semantics.extract import ExtractParams, ExtractRun, feature_files, import_features
+from stages.semantics.feature_files import load_feature_file
 from stages.semantics.field import load_field
 from stages.semantics.field_model import FieldParams
 from stages.semantics.fit_field import FieldRun, fit_field
@@ -213,12 +218,25 @@ def run_eval(
     """Run every variant on the room and write report.json (and the HTML page)."""
     check_params(p)
     variants = _chosen_variants(run.variants)
-    for path in (run.out, run.html):
-        if path is not None and Path(path).exists() and not run.force:
-            raise GoiError(f"{path}: already exists; pass --force to overwrite it")
     room = load_room(Path(room_dir), run.text_embeddings)
+    for path in (run.out, run.html):
+        if path is not None:
+            check_writable(Path(path), run.force)
+    inputs = [room.scene.ply_path, *room.scene.camera_files, room.dir / "prompts.json"]
+    refuse_inputs({"--out": run.out, "--html": run.html}, inputs)
+    # every prompt's RES masks are found, and the features and texts are checked to share one
+    # space, before anything is written
+    sources = {p.id: ResFiles(Path(res), p.id, p.text) for p in room.prompts}
+    first = next(iter(feature_files(room.scene, Path(features), "train").values()))
+    dim = load_feature_file(first).shape[0]
+    text_dim = next(iter(room.embeddings.values())).size
+    if dim != text_dim:
+        raise GoiError(
+            f"{first}: the features have {dim} dimensions but the prompts' text embeddings "
+            f"{text_dim}; image and text features must share one space"
+        )
     work = Path(run.work or Path(run.out).with_suffix(".work"))
-    work.mkdir(parents=True, exist_ok=True)
+    make_dir(work, "--work")
     timer = _Timer()
     scene = room.scene
     report.log(
@@ -250,7 +268,7 @@ def run_eval(
     figures: dict[str, dict[str, list]] = {v: {} for v in variants}
     for prompt in report.progress(room.prompts, "eval prompts", show=_prompt_id):
         text = room.embeddings[prompt.text]
-        source = ResFiles(Path(res), prompt.id, prompt.text)
+        source = sources[prompt.id]
         views = [v for v in prompt.test_views if v in test]
         gts = {v: room.ground_truth(prompt, v) for v in views}
         for variant in variants:
@@ -273,16 +291,13 @@ def run_eval(
             figures[variant][prompt.id] = [pred.masks, gts]
     for variant in variants:
         _summarise(doc["variants"][variant], room.gaussian_ids is not None)
-    from schemas import validate_json
-
-    if run.html is not None:
-        from stages.evaluation.report import eval_page
-
-        with timer("html"):  # doc["timings_s"] is timer.t: the page's own time lands too
-            views_rgb = tfcc.views if tfcc is not None else {}
-            eval_page(Path(run.html), doc, room.prompts, figures, views_rgb, scene)
-    validate_json(doc, "goi.eval", str(run.out))  # what we write, our reader must accept
-    write_json(run.out, doc, force=True)
+    with staged_outputs():  # the page, its images and the report appear together
+        if run.html is not None:
+            with timer("html"):  # doc["timings_s"] is timer.t: the page's own time lands too
+                views_rgb = tfcc.views if tfcc is not None else {}
+                eval_page(Path(run.html), doc, room.prompts, figures, views_rgb, scene)
+        validate_json(doc, "goi.eval", str(run.out))  # what we write, our reader must accept
+        write_json(run.out, doc, force=True)
     return EvalResult(doc, Path(run.out), run.html)
 
 

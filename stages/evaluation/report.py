@@ -13,6 +13,7 @@ import numpy as np
 
 from stages.core.artifacts import atomic_path, write_png
 from stages.core.errors import GoiError
+from stages.core.files import make_dir
 from stages.query.masks import overlay
 from stages.query.prompts import safe_name, view_file_name
 from stages.scene.images import read_rgb
@@ -74,7 +75,7 @@ def eval_page(
     """The eval report: metrics per variant and prompt, timings, and every test view's
     prediction (red) against the ground truth (green outline), one row per variant."""
     files = path.with_name(path.stem + "_files")
-    files.mkdir(parents=True, exist_ok=True)
+    make_dir(files, "--html")
     variants = list(report["variants"])
     body = [
         f"<p class='key'>room {esc(report['room'])} · fixed threshold {fmt(report['threshold'])}"

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.core.artifacts import read_json
 from stages.core.errors import GoiError
+from stages.core.files import read_json, regular_file
 from stages.query.prompts import load_text_embeddings
 from stages.scene.images import read_mask
 from stages.scene.scene import Scene, load_scene
@@ -67,6 +67,16 @@ class Room:
         return None if self.gaussian_ids is None else np.isin(self.gaussian_ids, prompt.targets)
 
 
+def _load_ids(path: Path) -> np.ndarray:
+    try:
+        ids = np.load(regular_file(path, "instance ids (.npy)"), allow_pickle=False)
+    except (ValueError, EOFError, OSError) as e:
+        raise GoiError(f"{path}: not a plain .npy array of instance ids ({e})") from None
+    if ids.ndim != 1 or ids.dtype.kind not in "iu":
+        raise GoiError(f"{path}: expected a 1-d integer array, found {ids.dtype} {ids.shape}")
+    return ids
+
+
 def load_room(room: Path, text_embeddings: Path | None = None) -> Room:
     """The room's parts, checked against each other before any work."""
     room = Path(room)
@@ -77,9 +87,17 @@ def load_room(room: Path, text_embeddings: Path | None = None) -> Room:
     if missing:
         raise GoiError(f"no text embedding for prompt(s) {', '.join(map(repr, missing[:3]))}")
     ids_path = room / "gaussian_ids.npy"
-    gaussian_ids = np.load(ids_path, allow_pickle=False) if ids_path.is_file() else None
+    gaussian_ids = _load_ids(ids_path) if ids_path.exists() else None
     if gaussian_ids is not None and gaussian_ids.shape != (scene.gaussians.count,):
         raise GoiError(
             f"{ids_path}: {gaussian_ids.shape} ids for {scene.gaussians.count} Gaussians"
         )
+    test = {c.name for c in scene.views("test")}
+    for p in prompts:  # every ground-truth mask is there before any work
+        for v in p.test_views:
+            if v in test:
+                regular_file(room / "eval" / "masks" / p.id / f"{v}.png", "ground-truth mask")
+    dims = {e.size for e in emb.values()}
+    if len(dims) != 1:
+        raise GoiError(f"text embeddings of several dimensions: {sorted(dims)}")
     return Room(room, scene, prompts, emb, gaussian_ids)

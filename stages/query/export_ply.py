@@ -12,7 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.core.artifacts import check_writable
 from stages.core.errors import GoiError
+from stages.core.files import refuse_inputs
 from stages.query.selection import Selection
 from stages.scene.gaussians import SH_C0, Gaussians, save_ply
 from stages.semantics.field import Field
@@ -30,7 +32,7 @@ _NAMED = {
 }
 
 
-def parse_color(text: str) -> np.ndarray:
+def parse_color(text: str, option: str = "--highlight") -> np.ndarray:
     """'red', '#ff8800' or 'r,g,b' with 0..1 or 0..255 numbers -> [3] float 0..1."""
     t = text.strip().lower()
     if t in _NAMED:
@@ -40,7 +42,7 @@ def parse_color(text: str) -> np.ndarray:
     v = _three_numbers(t)
     if v is not None and v.min() >= 0:
         return np.asarray(v / 255 if v.max() > 1 else v, np.float32)
-    raise GoiError(f"--highlight: {text!r} is not a colour (a name like red, #rrggbb, or r,g,b)")
+    raise GoiError(f"{option}: {text!r} is not a colour (a name like red, #rrggbb, or r,g,b)")
 
 
 def _three_numbers(text: str) -> np.ndarray | None:
@@ -88,6 +90,8 @@ def export_ply(
     field: Field | None = None,
 ) -> tuple[Path, int]:
     """Write the edited PLY; returns its path and its number of Gaussians."""
+    check_writable(run.out, run.force)
+    refuse_inputs({"--out": run.out}, [g.path])
     if sel.ply_sha256 != ply_sha:
         raise GoiError(
             f"--selection: it was made for another PLY (sha256 {sel.ply_sha256[:12]}...); "
@@ -98,6 +102,8 @@ def export_ply(
     edits = [o.invert, o.highlight is not None, o.translate is not None]
     if sum(edits) > 1:
         raise GoiError("give at most one of --invert, --highlight and --translate")
+    if o.highlight is not None:
+        parse_color(o.highlight)  # a bad colour is refused before anything is computed
     v = g.vertex.copy()
     s = sel.selected
     if o.semantics:
@@ -121,7 +127,15 @@ def export_ply(
     elif o.translate is not None:
         d = parse_vector(o.translate, "--translate")
         for i, axis in enumerate("xyz"):
-            v[axis][s] = (v[axis][s].astype(np.float64) + d[i]).astype(v[axis].dtype)
+            moved = v[axis][s].astype(np.float64) + d[i]
+            with np.errstate(over="ignore"):
+                stored = moved.astype(v[axis].dtype)
+            if not np.isfinite(stored).all():
+                raise GoiError(
+                    f"--translate: {o.translate!r} moves Gaussians beyond what the PLY's "
+                    f"{v[axis].dtype} '{axis}' can hold"
+                )
+            v[axis][s] = stored
     else:
         keep = ~s if o.invert else s
         if not keep.any():

@@ -16,8 +16,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from stages.core.artifacts import atomic_path, open_h5, put, sha256_file, stamp
+from stages.core.arrays import require_finite
+from stages.core.artifacts import atomic_path, check_writable, open_h5, put, sha256_file, stamp
 from stages.core.errors import GoiError
+from stages.core.files import refuse_inputs
 from stages.core.params import check_params
 from stages.core.report import SILENT, Report
 from stages.query.osh import Counts, Hyperplane, HyperplaneParams, count_pixels, fit_osh
@@ -56,16 +58,20 @@ def read_hyperplanes(path: str | os.PathLike[str]) -> dict[str, Hyperplane]:
     out = {}
     with open_h5(path, SCHEMA) as f:
         for key, g in f.get("prompts", {}).items():
+            where = f"{path}: prompts/{key}"
             info = {k: (v.item() if hasattr(v, "item") else v) for k, v in g.attrs.items()}
             info["key"] = key
-            out[str(g.attrs["prompt"])] = Hyperplane(
+            plane = Hyperplane(
                 str(g.attrs["prompt"]),
-                g["W"][()],
-                float(g.attrs["b"]),
-                g["entry_scores"][()],
-                g["text_embedding"][()],
+                require_finite(g["W"][()], f"{where}/W"),
+                float(require_finite(np.asarray(g.attrs["b"], np.float64), f"{where} attribute b")),
+                require_finite(g["entry_scores"][()], f"{where}/entry_scores"),
+                require_finite(g["text_embedding"][()], f"{where}/text_embedding"),
                 info,
             )
+            if plane.prompt in out:
+                raise GoiError(f"{where}: prompt {plane.prompt[:60]!r} is stored twice")
+            out[plane.prompt] = plane
     return out
 
 
@@ -102,6 +108,8 @@ def fit_hyperplane(
     came from the artifact."""
     check_params(p)
     out = Path(run.out)
+    refuse_inputs({"--out": out}, [field_path])
+    check_writable(out, force=True)  # the prompt is added to an existing artifact
     existing = read_hyperplanes(out) if out.exists() else {}
     field_sha = field_key(field_path)
     # The key covers every candidate mask file, so a hit needs no mask decoded at all.
@@ -145,7 +153,9 @@ def fit_hyperplane(
     return plane, False
 
 
-def load_plane(path: Path, prompt: str) -> Hyperplane:
+def load_plane(path: Path, prompt: str, field_path: Path, n_entries: int) -> Hyperplane:
+    """The prompt's plane, refused when it was fitted for another field than `field_path`
+    (its scores would name another codebook's entries)."""
     planes = read_hyperplanes(path)
     if prompt not in planes:
         listed = ", ".join(repr(p[:40]) for p in sorted(planes)[:5])
@@ -153,4 +163,10 @@ def load_plane(path: Path, prompt: str) -> Hyperplane:
             f"{path}: no hyperplane for prompt {prompt[:80]!r} (it holds {listed or 'none'}); "
             "run goi fit-hyperplane first"
         )
-    return planes[prompt]
+    plane = planes[prompt]
+    if plane.info.get("field_sha256") != field_key(field_path) or plane.scores.size != n_entries:
+        raise GoiError(
+            f"{path}: the hyperplane of {prompt[:60]!r} was fitted on another field than "
+            f"{field_path}; fit it again with this field (goi fit-hyperplane)"
+        )
+    return plane

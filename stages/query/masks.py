@@ -15,7 +15,8 @@ import numpy as np
 
 from stages.core.artifacts import write_png
 from stages.core.errors import GoiError, check_choice
-from stages.core.params import COSINE, Choice, check_params
+from stages.core.files import make_dir
+from stages.core.params import COSINE, Choice, check_params, name_list
 from stages.core.report import SILENT, Report
 from stages.query.osh import THRESHOLD, Hyperplane, threshold_plane
 from stages.query.prompts import view_file_name
@@ -88,14 +89,25 @@ def default_cameras(scene: Scene, views: str | None) -> list[Camera]:
 
 
 def pick_cameras(cams: dict[str, Camera], default: list[Camera], views: str | None) -> list[Camera]:
-    if not views:
+    """The cameras --views names (checked), else `default`."""
+    if views is None:
         return default
     out = []
-    for name in [v.strip() for v in views.split(",") if v.strip()]:
+    for name in name_list(views, "--views"):
         if name not in cams:
             raise GoiError(f"--views: no camera named '{name}'")
         out.append(cams[name])
     return out
+
+
+def mask_files(out: Path, cams: list[Camera], overlays: bool) -> list[Path]:
+    """The files render_masks writes for `cams`: <view>.png, and <view>.overlay.png."""
+    stems = [view_file_name(c.name) for c in cams]
+    return [
+        out / f"{s}{ext}"
+        for s in stems
+        for ext in ((".png", ".overlay.png") if overlays else (".png",))
+    ]
 
 
 def render_masks(
@@ -110,7 +122,11 @@ def render_masks(
     check_params(p)
     plane = plane_for(plane, p.mode, renderer.field, p.threshold)
     out = Path(run.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if not run.force:  # all or nothing: refuse before the first render, not half-way
+        existing = [f for f in mask_files(out, cams, not run.no_overlay) if f.exists()]
+        if existing:
+            raise GoiError(f"{existing[0]}: already exists; pass --force to overwrite it")
+    make_dir(out, "--out")
     written = []
     for cam in report.progress(cams, "render-mask", show=lambda c: c.name if c else None):
         view = renderer.render(cam, with_rgb=not run.no_overlay)

@@ -12,9 +12,10 @@ from pathlib import Path
 from typing import Annotated
 
 from stages.core.artifacts import input_digest
+from stages.core.files import make_dir
 from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
-from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply
+from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
 from stages.query.masks import MODES, MaskParams, MaskRun, default_cameras, render_masks
 from stages.query.osh import HyperplaneParams, threshold_plane
@@ -97,8 +98,9 @@ def run_query(
         prompt, field.codebook.shape[1], sources.text_embeddings, sources.bundle
     )
     cams = default_cameras(scene, run.views)  # checked before any work
-    out = Path(run.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if run.export == "highlight":
+        parse_color(run.color, "--color")
+    out = make_dir(run.out, "--out")
     if qp.mode == "hyperplane":
         masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
         plane, cached = fit_hyperplane(

@@ -8,14 +8,14 @@ different texts never share a file. The original text is kept in the artifacts a
 from __future__ import annotations
 
 import hashlib
-import math
 import re
 from pathlib import Path
 
 import numpy as np
 
-from stages.core.artifacts import read_json
+from stages.core.arrays import normalise
 from stages.core.errors import GoiError
+from stages.core.files import read_json
 
 MAX_PROMPT_CHARS = 1000
 _SLUG = re.compile(r"[^a-z0-9]+")
@@ -31,6 +31,12 @@ def check_prompt(text: str, option: str = "--prompt") -> str:
         raise GoiError(f"{option}: the prompt has {len(t)} characters; at most {MAX_PROMPT_CHARS}")
     if any(ord(c) < 32 and c not in "\t" for c in t):
         raise GoiError(f"{option}: the prompt contains control characters (NUL, newline, ...)")
+    try:
+        t.encode("utf-8")
+    except UnicodeEncodeError:  # a lone surrogate, e.g. undecodable bytes on the command line
+        raise GoiError(
+            f"{option}: the prompt is not valid Unicode text (undecodable bytes?)"
+        ) from None
     return t
 
 
@@ -53,24 +59,30 @@ def load_text_embeddings(path: Path) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
     dims = set()
     for text, vec in raw.items():
-        if (
-            not isinstance(vec, list)
-            or not vec
-            or not all(
-                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-                for v in vec
-            )
-        ):
+        v = _finite_vector(vec)
+        if v is None:
             raise GoiError(f"{path}: entry {text[:60]!r} is not a list of finite numbers")
-        v = np.asarray(vec, np.float64)
-        n = float(np.linalg.norm(v))
-        if n == 0:
+        peak = float(np.abs(v).max())
+        if peak == 0:
             raise GoiError(f"{path}: entry {text[:60]!r} is the zero vector")
-        out[text] = (v / n).astype(np.float32)
+        out[text] = normalise(v / peak).astype(np.float32)  # scaled first: no overflow
         dims.add(v.size)
     if len(dims) > 1:
         raise GoiError(f"{path}: entries have different lengths {sorted(dims)}")
     return out
+
+
+def _finite_vector(vec: object) -> np.ndarray | None:
+    """[D] float64 from a JSON list of finite numbers, else None."""
+    if not isinstance(vec, list) or not vec:
+        return None
+    try:
+        if any(isinstance(x, bool) or not isinstance(x, int | float) for x in vec):
+            return None
+        v = np.asarray([float(x) for x in vec], np.float64)
+    except OverflowError:  # an integer beyond float range
+        return None
+    return v if np.isfinite(v).all() else None
 
 
 def text_embedding(

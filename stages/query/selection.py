@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.core.artifacts import open_h5, put, write_h5
+from stages.core.errors import GoiError
 from stages.query.osh import Hyperplane
 from stages.semantics.field import Field
 
@@ -55,9 +56,15 @@ def write_selection(
 
 def load_selection(path: str | os.PathLike[str]) -> Selection:
     with open_h5(path, SCHEMA) as f:
-        return Selection(
-            f["selected"][()].astype(bool),
+        raw = f["selected"][()]
+        if raw.size and raw.max() > 1:
+            raise GoiError(f"{path}: dataset 'selected' holds values other than 0 and 1")
+        sel = Selection(
+            raw.astype(bool),
             str(f.attrs["prompt"]),
             str(f.attrs["mode"]),
             str(f.attrs["ply_sha256"]),
         )
+        if int(f.attrs["n_selected"]) != int(sel.selected.sum()):
+            raise GoiError(f"{path}: attribute 'n_selected' does not count the selected Gaussians")
+        return sel

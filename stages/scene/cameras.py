@@ -74,23 +74,46 @@ def checked(cam: Camera, where: str) -> Camera:
             f"{where}: camera '{cam.name}' has image size {cam.width}x{cam.height}; "
             f"goi accepts 1..{MAX_IMAGE_SIDE} pixels a side"
         )
+    if not (math.isfinite(cam.cx) and math.isfinite(cam.cy)):
+        raise GoiError(f"{where}: camera '{cam.name}' has a non-finite principal point")
     if not (np.isfinite(cam.R).all() and np.isfinite(cam.t).all()):
         raise GoiError(f"{where}: camera '{cam.name}' has a non-finite pose")
-    if abs(np.linalg.det(cam.R) - 1.0) > 1e-3:
+    # A rotation is orthonormal with determinant +1; a skewed or mirrored matrix would warp
+    # every projection without any other sign of trouble.
+    skew = float(np.abs(cam.R @ cam.R.T - np.eye(3)).max())
+    det = float(np.linalg.det(cam.R))
+    if skew > 1e-3 or abs(det - 1.0) > 1e-3:
         raise GoiError(
-            f"{where}: camera '{cam.name}' rotation is not a rotation (det = "
-            f"{np.linalg.det(cam.R):.4f})"
+            f"{where}: camera '{cam.name}' rotation is not a rotation (det = {det:.4f}, "
+            f"|R R^T - I| = {skew:.2g})"
         )
     return cam
 
 
 def num(obj: dict, key: str, where: str) -> float:
+    """A finite number field."""
     if key not in obj:
         raise GoiError(f"{where}: field '{key}' is missing")
+    value = obj[key]
     try:
-        return float(obj[key])
-    except (TypeError, ValueError):
-        raise GoiError(f"{where}: field '{key}' is not a number ({obj[key]!r})") from None
+        if isinstance(value, bool):
+            raise TypeError
+        x = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise GoiError(f"{where}: field '{key}' is not a number ({str(value)[:40]!r})") from None
+    if not math.isfinite(x):
+        raise GoiError(f"{where}: field '{key}' is not a finite number ({x})")
+    return x
+
+
+def pixels(obj: dict, key: str, where: str) -> int:
+    """An image side in pixels: a whole number in 1..MAX_IMAGE_SIDE."""
+    x = num(obj, key, where)
+    if x != int(x) or not 0 < x <= MAX_IMAGE_SIDE:
+        raise GoiError(
+            f"{where}: field '{key}' is {x:g}; goi accepts whole numbers of 1..{MAX_IMAGE_SIDE}"
+        )
+    return int(x)
 
 
 def matrix(obj: dict, key: str, shape: tuple[int, int], where: str) -> np.ndarray:

@@ -17,6 +17,7 @@ import plyfile
 
 from stages.core.artifacts import atomic_path
 from stages.core.errors import GoiError, warn
+from stages.core.files import regular_file
 
 SH_C0 = 0.28209479177387814
 REQUIRED = (
@@ -109,7 +110,10 @@ def _check_header(path: Path) -> None:
     fmt = next(((ln.split() + ["", ""])[1] for ln in lines if ln.startswith("format ")), "")
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise GoiError(f"{path}: unknown PLY format {fmt!r}")
-    elements: list[tuple[str, int, int | None]] = []  # name, count, bytes per row (None: lists)
+    # Per element: its name, declared row count and the fewest bytes a row can take (exact for
+    # binary rows without lists; a list takes at least its count; an ASCII value at least a
+    # character and a separator). No element may need more bytes than the file holds.
+    elements: list[tuple[str, int, int]] = []
     for ln in lines:
         tok = ln.split()
         if not tok:
@@ -119,15 +123,13 @@ def _check_header(path: Path) -> None:
                 raise GoiError(f"{path}: bad element count {tok[2]!r} for '{tok[1]}'")
             elements.append((tok[1], int(tok[2]), 0))
         elif tok[0] == "property" and elements:
-            if len(tok) < 3:
+            if len(tok) < 3 or (tok[1] == "list" and len(tok) < 5):
                 raise GoiError(f"{path}: malformed PLY header line {ln.strip()!r}")
+            kind = tok[2] if tok[1] == "list" else tok[1]  # a list row starts with its count
+            if kind not in _PLY_SIZES or (tok[1] == "list" and tok[3] not in _PLY_SIZES):
+                raise GoiError(f"{path}: unknown PLY property type in {ln.strip()!r}")
             name, count, row = elements[-1]
-            if tok[1] == "list" or row is None:
-                elements[-1] = (name, count, None)
-            elif tok[1] in _PLY_SIZES:
-                elements[-1] = (name, count, row + _PLY_SIZES[tok[1]])
-            else:
-                raise GoiError(f"{path}: unknown PLY property type {tok[1]!r}")
+            elements[-1] = (name, count, row + (2 if fmt == "ascii" else _PLY_SIZES[kind]))
     vert = next((e for e in elements if e[0] == "vertex"), None)
     if vert is None:
         raise GoiError(f"{path}: no 'vertex' element: not a 3D Gaussian Splatting PLY")
@@ -135,20 +137,20 @@ def _check_header(path: Path) -> None:
         raise GoiError(
             f"{path}: header declares {vert[1]} vertices, more than goi accepts ({MAX_VERTICES})"
         )
-    if fmt != "ascii" and all(e[2] is not None for e in elements):
-        need = sum(e[1] * (e[2] or 0) for e in elements)
-        have = size - body_start
-        if have < need:
+    have = size - body_start
+    need = 0
+    for name, count, row in elements:
+        need += count * max(row, 1)
+        if need > have:
+            rows = "vertices" if name == "vertex" else f"'{name}' rows"
             raise GoiError(
-                f"{path}: truncated: the header declares {vert[1]} vertices "
-                f"({need} bytes of data) but the file holds {have} bytes"
+                f"{path}: truncated or corrupt: the header declares {count} {rows} "
+                f"(at least {need} bytes of data up to them) but the file holds {have} bytes"
             )
 
 
 def load_ply(path: str | os.PathLike[str]) -> Gaussians:
-    p = Path(path)
-    if not p.is_file():
-        raise GoiError(f"{p}: no such PLY file")
+    p = regular_file(path, "PLY file")
     _check_header(p)
     try:
         ply = plyfile.PlyData.read(str(p))
@@ -199,6 +201,8 @@ def load_ply(path: str | os.PathLike[str]) -> Gaussians:
     norm = np.linalg.norm(rots, axis=1)
     valid = norm > 1e-12
     quats = rots / np.where(valid, norm, 1.0)[:, None]
+    if not valid.any():
+        raise GoiError(f"{p}: every Gaussian has a zero quaternion (rot_0..3): nothing to render")
     if not valid.all():
         warn(f"{p}: {int((~valid).sum())} Gaussians have a zero quaternion and are skipped")
     with np.errstate(over="ignore"):

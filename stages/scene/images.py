@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.core.errors import GoiError
+from stages.core.files import regular_file
 
 #: Larger images are refused before decoding: a 100k x 100k PNG would need 30 GB.
 MAX_IMAGE_PIXELS = 100_000_000
@@ -39,6 +40,7 @@ def image_size(path: Path) -> tuple[int, int] | None:
 def _imread(path: Path, what: str) -> np.ndarray:
     import cv2
 
+    regular_file(path, what)
     try:
         size = image_size(path)
     except OSError as e:
@@ -75,6 +77,8 @@ def read_mask(path: Path) -> np.ndarray:
     img = _imread(path, "mask image")
     if img.ndim == 3:
         img = img[:, :, :3].max(axis=2)
-    # 0/255 (or 0/65535) masks split at half range; 0/1 masks at zero
-    half = np.iinfo(img.dtype).max // 2 if img.dtype.kind in "ui" and img.max() > 1 else 0
+    # 0/255 (or 0/65535) masks split at half range; 0/1 masks at zero; float images at 0.5
+    if img.dtype.kind not in "ui":
+        return np.asarray(img > 0.5)
+    half = np.iinfo(img.dtype).max // 2 if img.max() > 1 else 0
     return np.asarray(img > half)

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.core.artifacts import read_json, sha256_file, sha256_files
+from stages.core.artifacts import sha256_file, sha256_files
 from stages.core.errors import GoiError
+from stages.core.files import read_json
 from stages.scene.cameras import IMAGE_EXTS, Camera
 from stages.scene.formats import load_cameras
 from stages.scene.gaussians import Gaussians, load_ply
@@ -178,10 +179,19 @@ def load_scene(
 
 def _read_split(path: Path, names: set[str]) -> dict[str, list[str]]:
     split = read_json(path)
-    if not isinstance(split, dict) or not isinstance(split.get("train"), list):
-        raise GoiError(f"{path}: needs a 'train' list of view names")
+    if not isinstance(split, dict):
+        raise GoiError(f'{path}: expected an object {{"train": [views], "test": [views]}}')
+    out: dict[str, list[str]] = {}
     for key in ("train", "test"):
-        unknown = [n for n in split.get(key, []) if n not in names]
+        views = split.get(key, [])
+        if not isinstance(views, list) or not all(isinstance(v, str) for v in views):
+            raise GoiError(f"{path}: '{key}' must be a list of view names (strings)")
+        unknown = [n for n in views if n not in names]
         if unknown:
             raise GoiError(f"{path}: '{key}' names views without a camera: {_preview(unknown)}")
-    return {k: [str(v) for v in split.get(k, [])] for k in ("train", "test")}
+        if len(set(views)) != len(views):
+            raise GoiError(f"{path}: '{key}' names a view more than once")
+        out[key] = views
+    if not out["train"]:
+        raise GoiError(f"{path}: needs a non-empty 'train' list of view names")
+    return out

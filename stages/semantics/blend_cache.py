@@ -19,8 +19,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from stages.core.artifacts import open_h5, put, write_h5
+from stages.core.artifacts import check_writable, open_h5, put, write_h5
 from stages.core.errors import GoiError
+from stages.core.files import regular_file
 from stages.core.report import SILENT, Report
 from stages.render.composite import blend_weights
 from stages.render.rasterizer import Rasterizer
@@ -123,9 +124,14 @@ class BlendCache:
                         f"{path}: view '{name}' has {len(vw.indptr) - 1} pixel rows "
                         f"for a {vw.width}x{vw.height} image"
                     )
+                _check_view(vw, int(f.attrs["n_gaussians"]), f"{path}: view '{name}'")
                 views[name] = vw
+            order = f["order"][()]
+            n = int(f.attrs["n_gaussians"])
+            if order.shape != (n,) or not np.array_equal(np.sort(order), np.arange(n)):
+                raise GoiError(f"{path}: 'order' is not a permutation of the {n} Gaussians")
             return cls(
-                f["order"][()],
+                order,
                 views,
                 int(f.attrs["top_k"]),
                 str(f.attrs["ply_sha256"]),
@@ -141,6 +147,21 @@ class BlendCache:
             "mass_kept": sum(v.mass_kept for v in self.views.values()) / n_views,
             "mib_per_view": sum(v.nbytes for v in self.views.values()) / n_views / 2**20,
         }
+
+
+def _check_view(vw: ViewWeights, n_gaussians: int, where: str) -> None:
+    """The CSR a damaged or forged file could break: every row inside the arrays, every column
+    a Gaussian, every weight a blending weight (alpha T lies in [0, 1])."""
+    ptr = vw.indptr
+    if ptr[0] != 0 or ptr[-1] != len(vw.indices) or (np.diff(ptr) < 0).any():
+        raise GoiError(f"{where}: its row pointers do not index its {len(vw.indices)} entries")
+    if len(vw.weights) != len(vw.indices):
+        raise GoiError(f"{where}: {len(vw.indices)} Gaussian ids but {len(vw.weights)} weights")
+    if len(vw.indices) and (vw.indices.min() < 0 or vw.indices.max() >= n_gaussians):
+        raise GoiError(f"{where}: a Gaussian id is outside 0..{n_gaussians - 1}")
+    w = vw.weights
+    if not (np.isfinite(w).all() and (w >= 0).all() and (w <= 1.0001).all()):
+        raise GoiError(f"{where}: holds weights outside [0, 1] or NaN/inf")
 
 
 def build_cache(
@@ -162,6 +183,36 @@ def build_cache(
     return BlendCache(order, views, k, ply_sha256, cameras_sha256)
 
 
+def cache_target(
+    path: str | os.PathLike[str],
+    scene: Scene,
+    cameras: list[Camera],
+    k: int,
+    sizes: dict[str, tuple[int, int]],
+    force: bool,
+) -> bool:
+    """Check the cache path before any work: True when it already holds this very cache (to
+    be reused); False when it is free, or holds something else and `force` allows replacing
+    it. A directory, or another file without --force, is refused."""
+    p = Path(path)
+    if p.is_dir():
+        raise GoiError(f"--cache: {p} is a directory; give the path of the blend cache file")
+    if not (p.exists() or p.is_symlink()):
+        check_writable(p, force)
+        return False
+    regular_file(p, "blend cache file (--cache)")
+    want = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
+    if _matches(p, scene.ply_digest(), scene.cameras_digest(), k, want):
+        return True
+    if not force:
+        raise GoiError(
+            f"--cache: {p} exists and is not the blend cache of these views, PLY and options; "
+            "pass --force to replace it, or give another --cache path"
+        )
+    check_writable(p, force)
+    return False
+
+
 def build_or_load(
     path: str | os.PathLike[str],
     scene: Scene,
@@ -169,19 +220,21 @@ def build_or_load(
     k: int = 0,
     sizes: dict[str, tuple[int, int]] | None = None,
     report: Report = SILENT,
+    force: bool = False,
 ) -> BlendCache:
     """The cache for these views, reused from `path` when it was built for the same PLY,
-    cameras, top-K and view sizes, otherwise (re)built and written there. `sizes` gives a
-    view's (width, height) when it is to be pooled below image resolution."""
-    ply_sha, cam_sha = scene.ply_digest(), scene.cameras_digest()
-    want = {c.name: (sizes or {}).get(c.name, (c.width, c.height)) for c in cameras}
+    cameras, top-K and view sizes, otherwise built and written there (replacing another file
+    only with `force`). `sizes` gives a view's (width, height) when it is to be pooled below
+    image resolution."""
+    sizes = sizes or {}
     p = Path(path)
-    if p.is_file() and _matches(p, ply_sha, cam_sha, k, want):
+    if cache_target(p, scene, cameras, k, sizes, force):
         cache = BlendCache.load(p)
         cache.views = {c.name: cache.views[c.name] for c in cameras}
         return cache
+    want = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
     rast = Rasterizer.from_gaussians(scene.gaussians)
-    cache = build_cache(rast, cameras, k, ply_sha, cam_sha, want, report)
+    cache = build_cache(rast, cameras, k, scene.ply_digest(), scene.cameras_digest(), want, report)
     cache.save(p, force=True)
     return cache
 
@@ -201,5 +254,5 @@ def _matches(p: Path, ply_sha: str, cam_sha: str, k: int, want: dict[str, tuple[
                     for v, wh in want.items()
                 )
             )
-    except (OSError, KeyError):
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError):
         return False

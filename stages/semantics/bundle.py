@@ -19,8 +19,9 @@ import numpy as np
 
 from schemas import validate_json
 from stages.core.arrays import normalise
-from stages.core.artifacts import read_json, sha256_files
+from stages.core.artifacts import sha256_files
 from stages.core.errors import GoiError
+from stages.core.files import read_json
 
 MANIFEST = "manifest.json"
 

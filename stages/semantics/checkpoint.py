@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stages.core.arrays import require_finite
 from stages.core.artifacts import open_h5, put, write_h5
 from stages.core.errors import GoiError
 from stages.semantics.field_model import PARAMETERS, FieldModel
@@ -43,16 +44,11 @@ def save_checkpoint(
         put(f, "loss_curve", np.asarray(curve, np.float32).reshape(-1, 5))
 
 
-def load_checkpoint(
-    path: Path,
-    model: FieldModel,
-    opt: torch.optim.Optimizer,
-    rng: np.random.Generator,
-    inputs: dict[str, str],
-    config: dict,
-) -> tuple[int, list[list[float]]]:
-    """Restore model, optimiser and sampler from `path`; returns the iteration reached and the
-    loss curve so far. Refuses a checkpoint made from other inputs or options."""
+def check_checkpoint(
+    path: Path, inputs: dict[str, str], config: dict, shapes: dict[str, tuple[int, ...]]
+) -> None:
+    """Refuse, before any work, a checkpoint that is damaged or was made from other inputs,
+    other options or for other tensor shapes."""
     with open_h5(path, SCHEMA) as f:
         if json.loads(f.attrs["inputs"]) != inputs:
             raise GoiError(
@@ -64,12 +60,36 @@ def load_checkpoint(
                 f"{path}: checkpoint was made with other fit-field options; use the "
                 "same options or run without --resume"
             )
+        for name in PARAMETERS:
+            if tuple(f[name].shape) != tuple(shapes[name]):
+                raise GoiError(
+                    f"{path}: '{name}' has shape {f[name].shape}, expected {tuple(shapes[name])}"
+                )
+            require_finite(f[name][()], f"{path}: dataset '{name}'")
+        iteration = int(f.attrs["iteration"])
+        if not 0 < iteration or f["loss_curve"].shape[0] != iteration:
+            raise GoiError(f"{path}: damaged checkpoint (iteration {iteration})")
+        try:
+            np.random.default_rng().bit_generator.state = json.loads(f.attrs["rng_state"])
+        except (ValueError, TypeError, KeyError) as e:
+            raise GoiError(f"{path}: damaged checkpoint (sampler state: {e})") from None
+
+
+def load_checkpoint(
+    path: Path,
+    model: FieldModel,
+    opt: torch.optim.Optimizer,
+    rng: np.random.Generator,
+    inputs: dict[str, str],
+    config: dict,
+) -> tuple[int, list[list[float]]]:
+    """Restore model, optimiser and sampler from `path`; returns the iteration reached and the
+    loss curve so far. Refuses a checkpoint made from other inputs or options."""
+    shapes = {n: tuple(t.shape) for n, t in zip(PARAMETERS, model.parameter_list(), strict=True)}
+    check_checkpoint(path, inputs, config, shapes)
+    with open_h5(path, SCHEMA) as f:
         with torch.no_grad():
             for name, p in zip(PARAMETERS, model.parameter_list(), strict=True):
-                if tuple(f[name].shape) != tuple(p.shape):
-                    raise GoiError(
-                        f"{path}: '{name}' has shape {f[name].shape}, expected {tuple(p.shape)}"
-                    )
                 p.copy_(torch.from_numpy(f[name][()]))
                 if f"adam/{name}" in f:
                     grp = f[f"adam/{name}"]

@@ -10,9 +10,10 @@ from typing import Annotated
 
 import numpy as np
 
-from stages.core.arrays import normalise
-from stages.core.artifacts import input_digest, open_h5, put, write_h5
+from stages.core.arrays import normalise, require_finite
+from stages.core.artifacts import check_writable, input_digest, open_h5, put, write_h5
 from stages.core.errors import GoiError
+from stages.core.files import refuse_inputs
 from stages.core.params import AT_LEAST_1, SEED, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.semantics.features import load_features
@@ -49,6 +50,8 @@ def init_codebook(
     features_path: Path, p: CodebookParams, run: CodebookRun, report: Report = SILENT
 ) -> Path:
     check_params(p)
+    check_writable(run.out, run.force)
+    refuse_inputs({"--out": run.out}, [features_path])
     fm = load_features(features_path)
     rng = np.random.default_rng(p.seed)
     if p.two_stage:
@@ -76,7 +79,7 @@ def init_codebook(
 def load_codebook(path: str | os.PathLike[str]) -> np.ndarray:
     """[N, D] float32 unit entries."""
     with open_h5(path, SCHEMA) as f:
-        entries = f["entries"][()]
-    if not np.isfinite(entries).all():
-        raise GoiError(f"{path}: codebook entries contain NaN/inf")
+        entries = require_finite(f["entries"][()], f"{path}: dataset 'entries'")
+    if entries.shape[0] < 2 or entries.shape[1] < 1:
+        raise GoiError(f"{path}: a codebook needs at least 2 entries; it has {entries.shape}")
     return entries

@@ -26,8 +26,8 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from stages.core.artifacts import check_writable, read_json
 from stages.core.errors import GoiError
+from stages.core.files import make_dir, read_json
 from stages.core.params import Range, check_params
 from stages.semantics.bundle import MANIFEST, load_bundle
 
@@ -308,8 +308,15 @@ def export_model(src: Path, opts: ModelExportParams, run: ModelExportRun) -> Pat
         raise GoiError(f"SOURCE: {src} is not a checkpoint directory")
     cfg = _read_json(src / "config.json")
     out = Path(run.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    check_writable(out, run.force)
+    if out.resolve() == src.resolve() or src.resolve().is_relative_to(out.resolve()):
+        raise GoiError(f"--out: {out} holds the checkpoint SOURCE; choose another directory")
+    if out.exists() and not run.force:
+        raise GoiError(f"--out: {out} already exists; pass --force to replace the bundle")
+    if out.exists() and not out.is_dir():
+        raise GoiError(f"--out: {out} is a file; a bundle is a directory")
+    if out.exists() and not (out / MANIFEST).is_file() and any(out.iterdir()):
+        raise GoiError(f"--out: {out} is not a model bundle; goi replaces only a bundle")
+    make_dir(out.parent, "--out")
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as t:
         tmp = Path(t)
         if cfg.get("model_type") == "clip":

@@ -19,10 +19,16 @@ import numpy as np
 
 from stages.core.artifacts import check_writable, put, sha256_files, stamp
 from stages.core.errors import GoiError
+from stages.core.files import refuse_inputs
 from stages.core.params import AT_LEAST_1, Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.scene.scene import Scene
-from stages.semantics.feature_files import find_feature_file, load_feature_file, resample
+from stages.semantics.feature_files import (
+    find_feature_file,
+    load_feature_file,
+    resample,
+    to_float16,
+)
 from stages.semantics.features import SCHEMA
 
 
@@ -65,9 +71,9 @@ def _write_views(
         mode = "r+" if same else "w"
         if same:
             report.log(f"resuming {partial}")
-    # On bad input nothing of this run is worth keeping, so a partial file it created goes.
+    # On a failure nothing of this run is worth keeping, so a partial file it created goes.
     # An interruption (Ctrl-C, a crash) keeps it, so that the next run resumes it.
-    with _removed_on_bad_input(partial, created=mode == "w"):
+    with _removed_on_failure(partial, created=mode == "w"):
         dim = None
         with h5py.File(partial, mode, track_order=True) as f:
             if mode == "w":
@@ -91,7 +97,7 @@ def _write_views(
                 cam = scene.camera(name)
                 g = views.create_group(name)
                 g.attrs.update(image_width=cam.width, image_height=cam.height)
-                put(g, "features", hwd.astype(np.float16), compress=True)
+                put(g, "features", to_float16(hwd), compress=True)
                 f.attrs["dim"] = dim
                 f.flush()
             if "dim" not in f.attrs:
@@ -104,29 +110,26 @@ def _write_views(
 
 
 @contextlib.contextmanager
-def _removed_on_bad_input(path: Path, created: bool) -> Iterator[None]:
+def _removed_on_failure(path: Path, created: bool) -> Iterator[None]:
     try:
         yield
-    except GoiError:
+    except Exception:  # a bad input (or a bug); KeyboardInterrupt is no Exception: kept
         if created:
             path.unlink(missing_ok=True)
         raise
 
 
-def import_features(
-    scene: Scene, src: Path, p: ExtractParams, run: ExtractRun, report: Report = SILENT
-) -> Path:
-    """Write the features artifact from per-image `.npy` / `.pt` files in `src`."""
-    check_params(p)
+def feature_files(scene: Scene, src: Path, split: str) -> dict[str, Path]:
+    """The feature file of every view of the split in `src` (each one must have one)."""
     if not src.is_dir():
         raise GoiError(f"--from: {src} is not a directory")
-    cams = scene.views(p.split)
-    files = {c.name: find_feature_file(src, c.name, c.image) for c in cams}
-    missing = [n for n, p in files.items() if p is None]
-    if len(missing) == len(files):
+    cams = scene.views(split)
+    found = {c.name: find_feature_file(src, c.name, c.image) for c in cams}
+    missing = [n for n, f in found.items() if f is None]
+    if len(missing) == len(found):
         raise GoiError(
             f"--from: {src} has no <view>.npy or <view>.pt for any of the "
-            f"{len(files)} {p.split} views (e.g. {cams[0].name}.npy): do the "
+            f"{len(found)} {split} views (e.g. {cams[0].name}.npy): do the "
             "feature files belong to this scene?"
         )
     if missing:
@@ -134,15 +137,24 @@ def import_features(
             f"--from: {src} has no features for view(s) {', '.join(missing[:5])}"
             f"{' ...' if len(missing) > 5 else ''}"
         )
+    return {n: f for n, f in found.items() if f is not None}
+
+
+def import_features(
+    scene: Scene, src: Path, p: ExtractParams, run: ExtractRun, report: Report = SILENT
+) -> Path:
+    """Write the features artifact from per-image `.npy` / `.pt` files in `src`."""
+    check_params(p)
+    files = feature_files(scene, src, p.split)
+    refuse_inputs({"--out": run.out}, [*files.values(), scene.ply_path, *scene.camera_files])
     inputs = {
         "cameras": scene.cameras_digest(),
         # Every byte: a file edited in place must not pass for the one a field was fitted on.
-        "features_dir": sha256_files([f for f in files.values() if f is not None]),
+        "features_dir": sha256_files(list(files.values())),
     }
 
     def make(name: str) -> np.ndarray:
         path = files[name]
-        assert path is not None  # checked above
         chw = load_feature_file(path)
         if not np.isfinite(chw).all():
             raise GoiError(f"{path}: holds {int((~np.isfinite(chw)).sum())} NaN/inf values")
@@ -168,6 +180,7 @@ def encode_views(
     names = [c.name for c in scene.views(p.split)]
     for n in names:  # fail before any work on a missing or mis-sized image
         scene.image_path(scene.camera(n))
+    refuse_inputs({"--out": run.out}, [scene.ply_path, *scene.camera_files])
     inputs = {"cameras": scene.cameras_digest(), "bundle": bundle.digest()}
 
     def make(name: str) -> np.ndarray:

@@ -30,7 +30,7 @@ def load_feature_file(path: Path) -> np.ndarray:
     if path.suffix == ".npy":
         try:
             arr = np.load(path, allow_pickle=False, mmap_mode="r")
-        except ValueError as e:
+        except (ValueError, EOFError) as e:  # EOFError: an empty or cut-off file
             raise GoiError(f"{path}: not a plain numeric .npy array ({e})") from None
         except OSError as e:
             raise GoiError(f"{path}: cannot read ({e})") from None
@@ -47,13 +47,28 @@ def load_feature_file(path: Path) -> np.ndarray:
         if not isinstance(t, torch.Tensor):
             raise GoiError(f"{path}: holds a {type(t).__name__}, expected one [D, H, W] tensor")
         arr = t.float().numpy()
-    if arr.ndim != 3:
-        raise GoiError(f"{path}: shape {tuple(arr.shape)}, expected [D, h, w]")
+    if arr.ndim != 3 or 0 in arr.shape:
+        raise GoiError(f"{path}: shape {tuple(arr.shape)}, expected [D, h, w] of non-zero sizes")
     if arr.dtype.kind not in "fiu":
         raise GoiError(f"{path}: dtype {arr.dtype} is not numeric")
     if int(np.prod(arr.shape, dtype=np.int64)) > MAX_FEATURE_VALUES:
         raise GoiError(f"{path}: shape {tuple(arr.shape)} is too large")
-    return np.asarray(arr, dtype=np.float32)
+    try:
+        return np.asarray(arr, dtype=np.float32)
+    except (ValueError, OSError) as e:  # a memory-mapped file cut short
+        raise GoiError(f"{path}: cannot read the array ({e})") from None
+
+
+def to_float16(hwd: np.ndarray) -> np.ndarray:
+    """[h, w, D] as float16 without overflow: a cell whose values exceed float16's range is
+    scaled down by a power of two first, which changes no cosine (goi compares features only
+    by cosine) and leaves every other cell's bits as a plain cast gives them."""
+    peak = np.abs(hwd).max(axis=2, keepdims=True)  # [h, w, 1]
+    limit = np.float32(np.finfo(np.float16).max / 2)
+    if not (peak > limit).any():
+        return hwd.astype(np.float16)
+    shift = np.where(peak > limit, np.ceil(np.log2(peak / limit)), 0).astype(np.int32)
+    return np.ldexp(hwd, -shift).astype(np.float16)
 
 
 def resample(chw: np.ndarray, max_side: int) -> np.ndarray:

@@ -28,8 +28,33 @@ class FeatureMaps:
         return list(self.maps)
 
 
+def feature_views(path: str | os.PathLike[str]) -> tuple[int, list[str]]:
+    """The features' dimension and views, without reading the maps (for early checks)."""
+    with open_h5(path, SCHEMA) as f:
+        dim = int(f.attrs["dim"])
+        names = list(f["views"])
+    if dim < 1 or not names:
+        raise GoiError(f"{path}: holds no views (dimension {dim}); re-run goi extract")
+    return dim, names
+
+
+def feature_grid(path: str | os.PathLike[str], views: list[str]) -> dict[str, tuple[int, int]]:
+    """Each view's feature grid (width, height), read from the dataset shapes alone."""
+    feature_views(path)
+    with open_h5(path, SCHEMA) as f:
+        missing = [v for v in views if v not in f["views"]]
+        if missing:
+            raise GoiError(
+                f"{path}: no features for view(s) {', '.join(missing[:5])}"
+                f"{' ...' if len(missing) > 5 else ''}; re-run goi extract"
+            )
+        return {v: (f["views"][v]["features"].shape[1], f["views"][v]["features"].shape[0])
+                for v in views}  # fmt: skip
+
+
 def load_features(path: str | os.PathLike[str], views: list[str] | None = None) -> FeatureMaps:
     p = Path(path)
+    feature_views(p)
     with open_h5(p, SCHEMA) as f:
         dim = int(f.attrs["dim"])
         names = list(f["views"]) if views is None else views

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.core.arrays import normalise
+from stages.core.arrays import normalise, require_finite
 from stages.core.artifacts import open_h5, put, write_h5
 from stages.core.errors import GoiError
 
@@ -66,15 +66,36 @@ class Field:
 
 
 def load_field(path: str | os.PathLike[str]) -> Field:
+    """The field, checked: finite values, and a decoder that fits the codebook."""
     with open_h5(path, SCHEMA) as f:
-        return Field(
-            f["features"][()],
-            f["decoder_weight"][()],
-            f["decoder_bias"][()],
-            f["codebook"][()],
-            str(f.attrs["decoder"]) == "direct",
+        decoder = str(f.attrs["decoder"])
+        if decoder not in ("codebook", "direct"):
+            raise GoiError(f"{path}: attribute 'decoder' is {decoder!r} (codebook or direct)")
+        arrays = {
+            name: require_finite(f[name][()], f"{path}: dataset '{name}'")
+            for name in ("features", "decoder_weight", "decoder_bias", "codebook")
+        }
+        field = Field(
+            arrays["features"],
+            arrays["decoder_weight"],
+            arrays["decoder_bias"],
+            arrays["codebook"],
+            decoder == "direct",
             str(f.attrs["ply_sha256"]),
         )
+    n, d = field.codebook.shape
+    s = field.features.shape[1]
+    out = d if field.direct else n
+    if field.decoder_weight.shape != (out, s) or field.decoder_bias.shape != (out,):
+        target = f"{out} feature dimensions" if field.direct else f"{out} codebook entries"
+        raise GoiError(
+            f"{path}: the decoder maps {field.decoder_weight.shape[1]} -> "
+            f"{field.decoder_weight.shape[0]} (bias {field.decoder_bias.shape[0]}), but the "
+            f"field has {s}-d features and {target}"
+        )
+    if n < 1:
+        raise GoiError(f"{path}: the codebook has no entries")
+    return field
 
 
 def load_field_for(path: str | os.PathLike[str], ply_sha256: str) -> Field:

@@ -18,14 +18,15 @@ import torch
 
 from stages.core.artifacts import check_writable, input_digest
 from stages.core.errors import GoiError
+from stages.core.files import refuse_inputs
 from stages.core.params import NON_NEGATIVE, check_params
 from stages.core.report import SILENT, Report
 from stages.scene.scene import Scene
-from stages.semantics.blend_cache import build_or_load
-from stages.semantics.checkpoint import load_checkpoint, save_checkpoint
+from stages.semantics.blend_cache import build_or_load, cache_target
+from stages.semantics.checkpoint import check_checkpoint, load_checkpoint, save_checkpoint
 from stages.semantics.codebook import load_codebook
 from stages.semantics.feature_renderer import FeatureRenderer
-from stages.semantics.features import load_features
+from stages.semantics.features import feature_grid, feature_views, load_features
 from stages.semantics.field import save_field
 from stages.semantics.field_model import PARAMETERS, FieldModel, FieldParams, field_losses
 
@@ -83,25 +84,42 @@ def fit_field(
     run: FieldRun,
     report: Report = SILENT,
 ) -> Path:
+    # Everything is checked before the blend cache is built (minutes on a big scene).
     check_params(p)
     check_params(run)
     check_writable(run.out, run.force)
+    cache_path = run.cache or run.out.with_name("blend_cache.h5")
+    outputs = {"--out": run.out, "--cache": cache_path}
+    refuse_inputs(outputs, [scene.ply_path, *scene.camera_files, features_path, codebook_path])
+    if cache_path.resolve() == run.out.resolve():
+        raise GoiError(f"--cache: {cache_path} is also --out; give them different paths")
     g = scene.gaussians
-    views = [c.name for c in scene.views("train")]
-    fm = load_features(features_path, views)
+    train = scene.views("train")
+    views = [c.name for c in train]
+    sizes = feature_grid(features_path, views)
+    dim, _ = feature_views(features_path)
     codebook = load_codebook(codebook_path)
-    if codebook.shape[1] != fm.dim:
+    if codebook.shape[1] != dim:
         raise GoiError(
             f"{codebook_path}: codebook entries have dimension {codebook.shape[1]}, "
-            f"but the features in {features_path} have {fm.dim}"
+            f"but the features in {features_path} have {dim}"
         )
-    sizes = {v: (m.shape[1], m.shape[0]) for v, m in fm.maps.items()}
-    cache_path = run.cache or run.out.with_name("blend_cache.h5")
-    cache = build_or_load(cache_path, scene, scene.views("train"), p.top_k, sizes, report)
+    inputs = _inputs(scene, features_path, codebook_path)
+    shapes = {
+        "features": (g.count, p.sem_dim),
+        "decoder_weight": (dim if p.no_tfcc else codebook.shape[0], p.sem_dim),
+        "decoder_bias": (dim if p.no_tfcc else codebook.shape[0],),
+        "codebook": codebook.shape,
+    }
+    if run.resume and run.checkpoint.is_file():
+        check_checkpoint(run.checkpoint, inputs, p.config(), shapes)
+    cache_target(cache_path, scene, train, p.top_k, sizes, run.force)
+
+    fm = load_features(features_path, views)
+    cache = build_or_load(cache_path, scene, train, p.top_k, sizes, report, run.force)
     fr = FeatureRenderer(cache, views)
     targets = {v: torch.from_numpy(m.reshape(-1, fm.dim)) for v, m in fm.maps.items()}
 
-    inputs = _inputs(scene, features_path, codebook_path)
     torch.manual_seed(p.seed)
     model = FieldModel(g.count, p.sem_dim, codebook, p.no_tfcc)
     opt = torch.optim.Adam(

@@ -1,8 +1,10 @@
 import os
 
 import numpy as np
+import pytest
 import torch
 
+from stages.core.errors import GoiError
 from stages.render.composite import blend_weights
 from stages.scene.formats.inria import write_inria
 from stages.scene.scene import load_scene
@@ -106,7 +108,11 @@ def test_cache_is_reused_and_rebuilt_when_inputs_change(tmp_path):
     np.testing.assert_array_equal(c1.views["b"].weights, c2.views["b"].weights)
     write_ply(tmp_path / "point_cloud.ply", random_vertex(200, degree=1, seed=9))
     scene = load_scene(tmp_path)
-    c3 = bc.build_or_load(path, scene, scene.views("train"))
+    # The file now holds another cache: replacing it is an overwrite, which needs --force.
+    with pytest.raises(GoiError, match=r"--cache: .*cache.h5 exists .* pass --force"):
+        bc.build_or_load(path, scene, scene.views("train"))
+    assert os.stat(path).st_mtime_ns == stamp
+    c3 = bc.build_or_load(path, scene, scene.views("train"), force=True)
     assert c3.ply_sha256 != c1.ply_sha256
     assert not np.array_equal(c3.views["b"].indices[:50], c1.views["b"].indices[:50])
 
@@ -147,8 +153,8 @@ def test_pooled_rows_render_the_mean_of_their_pixels(tmp_path):
         for cx in range(7):
             block = img[np.ix_(ys == cy, xs == cx)].reshape(-1, 4)
             np.testing.assert_allclose(cells[cy, cx], block.mean(0), atol=1e-5)
-    # A different size is a different cache: rebuilt, not reused.
-    again = bc.build_or_load(tmp_path / "pool.h5", scene, scene.views("train"))
+    # A different size is a different cache: rebuilt (with --force), not reused.
+    again = bc.build_or_load(tmp_path / "pool.h5", scene, scene.views("train"), force=True)
     assert again.views["a"].width == 48
 
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from stages.core.artifacts import read_json
 from stages.core.errors import GoiError
+from stages.core.files import read_json
 from stages.scene.cameras import Camera
 from stages.scene.formats import colmap, inria, nerf
 

@@ -8,8 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from stages.core.errors import GoiError
+from stages.core.files import read_bytes, read_text
 from stages.scene.cameras import Camera, checked, stem
 from stages.scene.rotation import quat_to_rotmat, rotmat_to_quat
+
+#: images.bin holds every image's 2D points; a model of this size has tens of thousands of images.
+MAX_COLMAP_BYTES = 8 << 30
 
 _COLMAP_MODELS = {
     0: ("SIMPLE_PINHOLE", 3),
@@ -40,7 +44,7 @@ def _colmap_intrinsics(model: str, params: list[float], cam_id: int, where: str)
 def _read_colmap_txt(d: Path):
     cams: dict[int, tuple] = {}
     where = str(d / "cameras.txt")
-    for ln in (d / "cameras.txt").read_text().splitlines():
+    for ln in read_text(d / "cameras.txt", "COLMAP cameras.txt").splitlines():
         tok = ln.split()
         if not tok or tok[0].startswith("#"):
             continue
@@ -55,7 +59,8 @@ def _read_colmap_txt(d: Path):
         cams[cid] = (w, h, *_colmap_intrinsics(model, params, cid, where))
     images = []
     where = str(d / "images.txt")
-    lines = [ln for ln in (d / "images.txt").read_text().splitlines() if not ln.startswith("#")]
+    text = read_text(d / "images.txt", "COLMAP images.txt")
+    lines = [ln for ln in text.splitlines() if not ln.startswith("#")]
     # Each image takes two lines; the second (its 2D points) may be empty.
     for ln in lines[0::2]:
         tok = ln.split()
@@ -75,7 +80,8 @@ def _read_colmap_txt(d: Path):
 
 class _Reader:
     def __init__(self, path: Path):
-        self.path, self.buf, self.pos = path, path.read_bytes(), 0
+        self.path, self.pos = path, 0
+        self.buf = read_bytes(path, "COLMAP binary file", limit=MAX_COLMAP_BYTES)
 
     def read(self, fmt: str):
         size = struct.calcsize(fmt)

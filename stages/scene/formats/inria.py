@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from stages.core.errors import GoiError
-from stages.scene.cameras import Camera, checked, matrix, num, stem
+from stages.scene.cameras import Camera, checked, matrix, num, pixels, stem
 
 
 def read_inria(path: Path, data: object) -> list[Camera]:
@@ -25,7 +25,7 @@ def read_inria(path: Path, data: object) -> list[Camera]:
         pos = matrix({"p": [c.get("position")]}, "p", (1, 3), where)[0] if "position" in c else None
         if pos is None:
             raise GoiError(f"{where}: field 'position' is missing")
-        w, h = int(num(c, "width", where)), int(num(c, "height", where))
+        w, h = pixels(c, "width", where), pixels(c, "height", where)
         R = c2w.T
         cams.append(
             checked(

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.core.errors import GoiError
-from stages.scene.cameras import GL_TO_CV, IMAGE_EXTS, Camera, checked, matrix, num, stem
+from stages.scene.cameras import GL_TO_CV, IMAGE_EXTS, Camera, checked, matrix, num, pixels, stem
 from stages.scene.images import image_size, read_rgb
 
 
@@ -35,6 +35,14 @@ def _find_image(path: Path) -> Path | None:
     return None
 
 
+def _angle(meta: dict, key: str, where: str) -> float:
+    """A field of view in radians, strictly between 0 and pi."""
+    a = num(meta, key, where)
+    if not 0 < a < math.pi:
+        raise GoiError(f"{where}: field '{key}' is {a:g} radians; a field of view is in (0, pi)")
+    return a
+
+
 def read_transforms(path: Path, data: object) -> list[Camera]:
     """Cameras from the parsed JSON `data` of `path`."""
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
@@ -48,16 +56,16 @@ def read_transforms(path: Path, data: object) -> list[Camera]:
         c2w = matrix(fr, "transform_matrix", (4, 4), where)
         file_path = str(fr["file_path"])
         if "w" in meta and "h" in meta:
-            w, h = int(num(meta, "w", where)), int(num(meta, "h", where))
+            w, h = pixels(meta, "w", where), pixels(meta, "h", where)
         else:
             w, h = _image_size(path.parent / file_path, where)
         if "fl_x" in meta:
             fx = num(meta, "fl_x", where)
             fy = num(meta, "fl_y", where) if "fl_y" in meta else fx
         elif "camera_angle_x" in meta:
-            fx = 0.5 * w / math.tan(0.5 * num(meta, "camera_angle_x", where))
+            fx = 0.5 * w / math.tan(0.5 * _angle(meta, "camera_angle_x", where))
             fy = (
-                0.5 * h / math.tan(0.5 * num(meta, "camera_angle_y", where))
+                0.5 * h / math.tan(0.5 * _angle(meta, "camera_angle_y", where))
                 if "camera_angle_y" in meta
                 else fx
             )
