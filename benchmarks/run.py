@@ -74,7 +74,7 @@ def suite_raster(repeat: int, tmp: Path) -> dict[str, float]:
             masses.append(float(kv.sum() / v.weights.sum()))
         out[f"top{k}_mass_kept_640x480_300k"] = float(np.mean(masses))
 
-    fr = FeatureRenderer(cache)
+    fr = FeatureRenderer.from_cache(cache)
     rng = np.random.default_rng(0)
     feats = torch.randn(g.count, 10, requires_grad=True)
     pixels = {c.name: np.sort(rng.choice(640 * 480, 64_000, replace=False)) for c in cams}
@@ -88,7 +88,7 @@ def suite_raster(repeat: int, tmp: Path) -> dict[str, float]:
 
     out["sparse_fwd_bwd_ms_4x64k_300k"] = 1e3 * median_s(sparse_step, repeat)
     full_fr = fr
-    fr = FeatureRenderer(bc.build_cache(rast, cams, 16, "", ""))
+    fr = FeatureRenderer.from_cache(bc.build_cache(rast, cams, 16, "", ""))
     out["sparse_fwd_bwd_ms_4x64k_300k_top16"] = 1e3 * median_s(sparse_step, repeat)
     fr = full_fr
 
@@ -269,10 +269,17 @@ def suite_query(repeat: int, tmp: Path) -> dict[str, float]:
     return out
 
 
+def suite_scale(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.scale import suite_scale as run
+
+    return run(repeat, tmp)
+
+
 SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "raster": suite_raster,
     "field": suite_field,
     "query": suite_query,
+    "scale": suite_scale,
 }
 
 

@@ -70,3 +70,16 @@ def staged_outputs() -> Iterator[Stage]:
         raise
     finally:
         _CURRENT.reset(token)
+
+
+@contextlib.contextmanager
+def kept_on_interrupt(partial: Path, created: bool) -> Iterator[None]:
+    """For a resumable `<out>.partial`: on a failure nothing of this run is worth keeping, so a
+    partial file it created goes; an interruption (Ctrl-C, a crash) keeps it, so that the next
+    run resumes it."""
+    try:
+        yield
+    except Exception:  # a bad input (or a bug); KeyboardInterrupt is no Exception: kept
+        if created:
+            partial.unlink(missing_ok=True)
+        raise

@@ -12,17 +12,20 @@ pixel sit close in memory, which is what makes the sparse products fast.
 
 from __future__ import annotations
 
+import json
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from stages.core.artifacts import check_writable, open_h5, put, write_h5
+from stages.core.artifacts import check_writable, open_h5, put, stamp, write_h5
 from stages.core.errors import GoiError
 from stages.core.files import regular_file
 from stages.core.report import SILENT, Report
+from stages.core.staging import kept_on_interrupt
 from stages.render.composite import blend_weights
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
@@ -93,45 +96,18 @@ class BlendCache:
             put(f, "order", self.order)
             views = f.create_group("views", track_order=True)
             for name, vw in self.views.items():
-                grp = views.create_group(name)
-                grp.attrs.update(
-                    width=vw.width,
-                    height=vw.height,
-                    mass_kept=vw.mass_kept,
-                    entries_total=vw.entries_total,
-                )
-                put(grp, "indptr", vw.indptr)
-                put(grp, "indices", vw.indices)
-                put(grp, "weights", vw.weights)
+                _write_view(views, name, vw)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> BlendCache:
         with open_h5(path, SCHEMA) as f:
-            views = {}
-            for name, grp in f["views"].items():
-                a = grp.attrs
-                vw = ViewWeights(
-                    int(a["width"]),
-                    int(a["height"]),
-                    grp["indptr"][()],
-                    grp["indices"][()],
-                    grp["weights"][()],
-                    float(a["mass_kept"]),
-                    int(a["entries_total"]),
-                )
-                if len(vw.indptr) != vw.width * vw.height + 1:
-                    raise GoiError(
-                        f"{path}: view '{name}' has {len(vw.indptr) - 1} pixel rows "
-                        f"for a {vw.width}x{vw.height} image"
-                    )
-                _check_view(vw, int(f.attrs["n_gaussians"]), f"{path}: view '{name}'")
-                views[name] = vw
-            order = f["order"][()]
             n = int(f.attrs["n_gaussians"])
-            if order.shape != (n,) or not np.array_equal(np.sort(order), np.arange(n)):
-                raise GoiError(f"{path}: 'order' is not a permutation of the {n} Gaussians")
+            views = {
+                name: read_view(grp, n, f"{path}: view '{name}'")
+                for name, grp in f["views"].items()
+            }
             return cls(
-                order,
+                read_order(f, path),
                 views,
                 int(f.attrs["top_k"]),
                 str(f.attrs["ply_sha256"]),
@@ -147,6 +123,53 @@ class BlendCache:
             "mass_kept": sum(v.mass_kept for v in self.views.values()) / n_views,
             "mib_per_view": sum(v.nbytes for v in self.views.values()) / n_views / 2**20,
         }
+
+
+def read_order(f: h5py.File, path: str | os.PathLike[str]) -> np.ndarray:
+    """The cache's column order [G] int32, checked to be a permutation."""
+    n = int(f.attrs["n_gaussians"])
+    order = f["order"][()]
+    if order.shape != (n,) or not np.array_equal(np.sort(order), np.arange(n)):
+        raise GoiError(f"{path}: 'order' is not a permutation of the {n} Gaussians")
+    return order
+
+
+def read_view(
+    grp: h5py.Group,
+    n_gaussians: int,
+    where: str,
+    check: bool = True,
+    indices: np.ndarray | None = None,
+    weights: np.ndarray | None = None,
+) -> ViewWeights:
+    """One view's weights from its group in a cache file, checked unless told otherwise; read
+    into `indices` and `weights` when given (slices of a larger array, of the right size)."""
+    a = grp.attrs
+    vw = ViewWeights(
+        int(a["width"]),
+        int(a["height"]),
+        grp["indptr"][()],
+        _read_into(grp["indices"], indices),
+        _read_into(grp["weights"], weights),
+        float(a["mass_kept"]),
+        int(a["entries_total"]),
+    )
+    if len(vw.indptr) != vw.width * vw.height + 1:
+        raise GoiError(
+            f"{where} has {len(vw.indptr) - 1} pixel rows for a {vw.width}x{vw.height} image"
+        )
+    if check:
+        _check_view(vw, n_gaussians, where)
+    return vw
+
+
+def _read_into(ds: h5py.Dataset, out: np.ndarray | None) -> np.ndarray:
+    if out is None:
+        return ds[()]
+    if ds.shape != out.shape:
+        raise GoiError(f"{ds.file.filename}: '{ds.name}' changed while being read")
+    ds.read_direct(out)
+    return out
 
 
 def _check_view(vw: ViewWeights, n_gaussians: int, where: str) -> None:
@@ -213,6 +236,99 @@ def cache_target(
     return False
 
 
+def cache_identity(scene: Scene, k: int, want: dict[str, tuple[int, int]]) -> dict[str, str | int]:
+    """What a cache was built from: a cache (or a cut-off build) with other values is not it."""
+    return {
+        "ply_sha256": scene.ply_digest(),
+        "cameras_sha256": scene.cameras_digest(),
+        "top_k": k,
+        "sizes": json.dumps(sorted(want.items())),
+    }
+
+
+def build_cache_file(
+    path: Path,
+    scene: Scene,
+    cameras: list[Camera],
+    k: int,
+    want: dict[str, tuple[int, int]],
+    report: Report = SILENT,
+) -> None:
+    """Rasterise the views one at a time into `<path>.partial` (memory: one view's weights),
+    then rename it to `path`. A cut-off build resumes there: the views it finished are kept."""
+    identity = cache_identity(scene, k, want)
+    partial = path.with_name(path.name + ".partial")
+    mode = "w"
+    if partial.is_file():
+        try:
+            with h5py.File(partial, "r") as f:
+                same = all(f.attrs.get(key) == value for key, value in identity.items())
+        except OSError:
+            same = False
+        mode = "r+" if same else "w"
+    t = time.perf_counter()
+    rast = Rasterizer.from_gaussians(scene.gaussians)
+    order = morton_order(rast.means)
+    position = np.empty_like(order)
+    position[order] = np.arange(len(order), dtype=np.int32)
+    inputs = {"ply": scene.ply_digest(), "cameras": scene.cameras_digest()}
+    with kept_on_interrupt(partial, created=mode == "w"):
+        with h5py.File(partial, mode, track_order=True) as f:
+            if mode == "w":
+                stamp(f, SCHEMA, inputs)
+                f.attrs.update(n_gaussians=len(order), **identity)
+                put(f, "order", order)
+                f.create_group("views", track_order=True)
+            views = f["views"]
+            for name in list(views):
+                if "weights" not in views[name]:
+                    del views[name]  # cut off while being written
+            todo = [c for c in cameras if c.name not in views]
+            if len(todo) < len(cameras):
+                report.log(f"resuming {partial}: {len(cameras) - len(todo)} views done")
+            for cam in report.progress(todo, "blend cache", length=len(todo)):
+                _write_view(views, cam.name, view_weights(rast, cam, position, k, want[cam.name]))
+                f.flush()
+            stamp(f, SCHEMA, inputs)
+    with open(partial, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(partial, path)
+    report.log(
+        f"blend cache built in {time.perf_counter() - t:.1f}s: {len(cameras)} views, "
+        f"{path.stat().st_size / 2**30:.2f} GiB at {path}"
+    )
+
+
+def _write_view(views: h5py.Group, name: str, vw: ViewWeights) -> None:
+    grp = views.create_group(name)
+    grp.attrs.update(
+        width=vw.width, height=vw.height, mass_kept=vw.mass_kept, entries_total=vw.entries_total
+    )
+    put(grp, "indptr", vw.indptr)
+    put(grp, "indices", vw.indices)
+    put(grp, "weights", vw.weights)  # last: its presence marks the view complete
+
+
+def ensure_cache(
+    path: str | os.PathLike[str],
+    scene: Scene,
+    cameras: list[Camera],
+    k: int = 0,
+    sizes: dict[str, tuple[int, int]] | None = None,
+    report: Report = SILENT,
+    force: bool = False,
+) -> Path:
+    """`path` holding the cache of these views: reused when it was built for the same PLY,
+    cameras, top-K and view sizes, otherwise built there (replacing another file only with
+    `force`). `sizes` gives a view's (width, height) when it is pooled below image size."""
+    sizes = sizes or {}
+    p = Path(path)
+    if not cache_target(p, scene, cameras, k, sizes, force):
+        want = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
+        build_cache_file(p, scene, cameras, k, want, report)
+    return p
+
+
 def build_or_load(
     path: str | os.PathLike[str],
     scene: Scene,
@@ -222,21 +338,22 @@ def build_or_load(
     report: Report = SILENT,
     force: bool = False,
 ) -> BlendCache:
-    """The cache for these views, reused from `path` when it was built for the same PLY,
-    cameras, top-K and view sizes, otherwise built and written there (replacing another file
-    only with `force`). `sizes` gives a view's (width, height) when it is to be pooled below
-    image resolution."""
-    sizes = sizes or {}
-    p = Path(path)
-    if cache_target(p, scene, cameras, k, sizes, force):
-        cache = BlendCache.load(p)
-        cache.views = {c.name: cache.views[c.name] for c in cameras}
-        return cache
-    want = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
-    rast = Rasterizer.from_gaussians(scene.gaussians)
-    cache = build_cache(rast, cameras, k, scene.ply_digest(), scene.cameras_digest(), want, report)
-    cache.save(p, force=True)
+    """`ensure_cache`, then the cache of these views in memory."""
+    cache = BlendCache.load(ensure_cache(path, scene, cameras, k, sizes, report, force))
+    cache.views = {c.name: cache.views[c.name] for c in cameras}
     return cache
+
+
+def cache_nbytes(path: str | os.PathLike[str], views: list[str]) -> dict[str, int]:
+    """Each view's weights in memory (bytes), from the dataset shapes alone."""
+    with h5py.File(path, "r") as f:
+        return {
+            v: sum(f["views"][v][d].size * f["views"][v][d].dtype.itemsize for d in _ARRAYS)
+            for v in views
+        }
+
+
+_ARRAYS = ("indptr", "indices", "weights")
 
 
 def _matches(p: Path, ply_sha: str, cam_sha: str, k: int, want: dict[str, tuple[int, int]]) -> bool:

@@ -6,10 +6,9 @@ already done are skipped) and the finished file is renamed to `<out>` only at th
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -22,6 +21,7 @@ from stages.core.errors import GoiError
 from stages.core.files import refuse_inputs
 from stages.core.params import AT_LEAST_1, Choice, check_params
 from stages.core.report import SILENT, Report
+from stages.core.staging import kept_on_interrupt
 from stages.scene.scene import Scene
 from stages.semantics.feature_files import (
     find_feature_file,
@@ -73,7 +73,7 @@ def _write_views(
             report.log(f"resuming {partial}")
     # On a failure nothing of this run is worth keeping, so a partial file it created goes.
     # An interruption (Ctrl-C, a crash) keeps it, so that the next run resumes it.
-    with _removed_on_failure(partial, created=mode == "w"):
+    with kept_on_interrupt(partial, created=mode == "w"):
         dim = None
         with h5py.File(partial, mode, track_order=True) as f:
             if mode == "w":
@@ -107,16 +107,6 @@ def _write_views(
         os.fsync(fh.fileno())
     os.replace(partial, out)
     return out
-
-
-@contextlib.contextmanager
-def _removed_on_failure(path: Path, created: bool) -> Iterator[None]:
-    try:
-        yield
-    except Exception:  # a bad input (or a bug); KeyboardInterrupt is no Exception: kept
-        if created:
-            path.unlink(missing_ok=True)
-        raise
 
 
 def feature_files(scene: Scene, src: Path, split: str) -> dict[str, Path]:

@@ -8,12 +8,15 @@ close in memory.
 
 from __future__ import annotations
 
+import os
+
 import numba
 import numpy as np
 import torch
 
+from stages.core.artifacts import open_h5
 from stages.core.errors import GoiError
-from stages.semantics.blend_cache import BlendCache
+from stages.semantics.blend_cache import SCHEMA, BlendCache, read_order, read_view
 
 
 @numba.njit(parallel=True, cache=True)
@@ -72,30 +75,89 @@ def _scatter_sum(bufs, idx, out):
 class FeatureRenderer:
     """Renders per-Gaussian features at any pixels of the cached views, differentiably.
 
-    All views' matrices are stacked once into one CSR so that a training step only names
+    The chosen views' matrices are stacked into one CSR so that a training step only names
     rows: no per-step copying of weights.
     """
 
-    def __init__(self, cache: BlendCache, views: list[str] | None = None):
+    def __init__(
+        self,
+        order: np.ndarray,  # [G] int32: column j holds Gaussian order[j]
+        sizes: dict[str, tuple[int, int]],  # view -> (width, height), in stacking order
+        indptr: np.ndarray,  # [rows + 1] int64, the views' rows one after another
+        indices: np.ndarray,  # [nnz] int32
+        weights: np.ndarray,  # [nnz] float32
+    ):
+        self.views = list(sizes)
+        self.sizes = sizes
+        self.row_offset: dict[str, int] = {}
+        row = 0
+        for v, (w, h) in sizes.items():
+            self.row_offset[v] = row
+            row += w * h
+        self.indptr, self.indices, self.weights = indptr, indices, weights
+        self.order = order
+        self.n_gaussians = int(len(order))
+
+    @classmethod
+    def from_cache(cls, cache: BlendCache, views: list[str] | None = None) -> FeatureRenderer:
         names = list(cache.views) if views is None else views
         missing = [v for v in names if v not in cache.views]
         if missing:
             raise GoiError(f"view(s) {', '.join(missing[:5])} are not in the blend cache")
         parts = [cache.views[v] for v in names]
-        self.views = names
-        self.sizes = {v: (p.width, p.height) for v, p in zip(names, parts, strict=True)}
-        self.row_offset: dict[str, int] = {}
-        ptrs, base, row = [np.zeros(1, np.int64)], 0, 0
-        for v, p in zip(names, parts, strict=True):
-            self.row_offset[v] = row
+        ptrs, base = [np.zeros(1, np.int64)], 0
+        for p in parts:
             ptrs.append(p.indptr[1:] + base)
             base += int(p.indptr[-1])
-            row += p.width * p.height
-        self.indptr = np.concatenate(ptrs)  # [rows + 1] int64
-        self.indices = np.concatenate([p.indices for p in parts])  # [nnz] int32
-        self.weights = np.concatenate([p.weights for p in parts])  # [nnz] float32
-        self.order = cache.order  # [G] int32: column j holds Gaussian order[j]
-        self.n_gaussians = cache.n_gaussians
+        return cls(
+            cache.order,
+            {v: (p.width, p.height) for v, p in zip(names, parts, strict=True)},
+            np.concatenate(ptrs),
+            np.concatenate([p.indices for p in parts]),
+            np.concatenate([p.weights for p in parts]),
+        )
+
+    @classmethod
+    def from_file(
+        cls,
+        path: str | os.PathLike[str],
+        views: list[str],
+        order: np.ndarray | None = None,
+        check: bool = True,
+    ) -> FeatureRenderer:
+        """The views' weights read from the cache file straight into the stacked arrays, so
+        that memory holds them once. A fit that streams the cache calls this every step for
+        that step's views, with the `order` it read once and `check` off (it checked every
+        view once before)."""
+        with open_h5(path, SCHEMA) as f:
+            n = int(f.attrs["n_gaussians"])
+            order = read_order(f, path) if order is None else order
+            missing = [v for v in views if v not in f["views"]]
+            if missing:
+                raise GoiError(f"{path}: view(s) {', '.join(missing[:5])} are not in the cache")
+            groups = [f["views"][v] for v in views]
+            sizes = {
+                v: (int(g.attrs["width"]), int(g.attrs["height"]))
+                for v, g in zip(views, groups, strict=True)
+            }
+            nnz = [g["indices"].shape[0] for g in groups]
+            indptr = np.zeros(sum(w * h for w, h in sizes.values()) + 1, np.int64)
+            indices = np.empty(sum(nnz), np.int32)
+            weights = np.empty(sum(nnz), np.float32)
+            row = base = 0
+            for v, g, m in zip(views, groups, nnz, strict=True):
+                w, h = sizes[v]
+                vw = read_view(
+                    g,
+                    n,
+                    f"{path}: view '{v}'",
+                    check,
+                    indices[base : base + m],
+                    weights[base : base + m],
+                )
+                indptr[row + 1 : row + w * h + 1] = vw.indptr[1:] + base
+                row, base = row + w * h, base + m
+        return cls(order, sizes, indptr, indices, weights)
 
     def rows(self, view: str, pixels: np.ndarray | None = None) -> np.ndarray:
         """Global row ids [R] int64 of a view's pixels (row-major ids; None = all)."""

@@ -1,6 +1,8 @@
 """The features artifact: per training view a dense [h, w, D] map of language-aligned features.
 
-Readers get float32, L2-normalised per cell (GOI only ever compares features by cosine).
+Readers get float32, L2-normalised per cell (GOI only ever compares features by cosine), or,
+for a fit that holds every view at once, the stored float16 as it is (`unit=False`: half the
+memory; the caller normalises the cells it draws, which gives the same float32 values).
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ SCHEMA = "goi.features"
 @dataclass
 class FeatureMaps:
     dim: int
-    maps: dict[str, np.ndarray]  # view -> [h, w, D] float32, unit norm (zero cells stay zero)
+    maps: dict[str, np.ndarray]  # view -> [h, w, D] float32 unit norm (zero cells stay zero),
+    # or float16 as stored with unit=False
 
     @property
     def views(self) -> list[str]:
@@ -52,7 +55,9 @@ def feature_grid(path: str | os.PathLike[str], views: list[str]) -> dict[str, tu
                 for v in views}  # fmt: skip
 
 
-def load_features(path: str | os.PathLike[str], views: list[str] | None = None) -> FeatureMaps:
+def load_features(
+    path: str | os.PathLike[str], views: list[str] | None = None, unit: bool = True
+) -> FeatureMaps:
     p = Path(path)
     feature_views(p)
     with open_h5(p, SCHEMA) as f:
@@ -66,8 +71,8 @@ def load_features(path: str | os.PathLike[str], views: list[str] | None = None) 
             )
         maps = {}
         for v in names:
-            m = f["views"][v]["features"][()].astype(np.float32)
+            m = f["views"][v]["features"][()]
             if not np.isfinite(m).all():
                 raise GoiError(f"{p}: features of view '{v}' contain NaN/inf")
-            maps[v] = normalise(m)
+            maps[v] = normalise(m.astype(np.float32)) if unit else m.astype(np.float16)
     return FeatureMaps(dim, maps)

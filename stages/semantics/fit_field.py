@@ -16,19 +16,21 @@ from typing import Annotated, Any
 import numpy as np
 import torch
 
+from stages.core.arrays import normalise
 from stages.core.artifacts import check_writable, input_digest
 from stages.core.errors import GoiError
 from stages.core.files import refuse_inputs
 from stages.core.params import NON_NEGATIVE, check_params
 from stages.core.report import SILENT, Report
 from stages.scene.scene import Scene
-from stages.semantics.blend_cache import build_or_load, cache_target
+from stages.semantics.blend_cache import cache_nbytes, cache_target, ensure_cache
 from stages.semantics.checkpoint import check_checkpoint, load_checkpoint, save_checkpoint
 from stages.semantics.codebook import load_codebook
 from stages.semantics.feature_renderer import FeatureRenderer
 from stages.semantics.features import feature_grid, feature_views, load_features
 from stages.semantics.field import save_field
 from stages.semantics.field_model import PARAMETERS, FieldModel, FieldParams, field_losses
+from stages.semantics.memory import memory_budget, working_set
 
 
 @dataclass
@@ -41,6 +43,10 @@ class FieldRun:
     """Write <out>.ckpt every this many iterations (0: never)."""
     resume: bool = False
     """Continue from <out>.ckpt when it exists (and was made from the same inputs)."""
+    max_memory_gib: Annotated[float, NON_NEGATIVE] = 0.0
+    """Memory the fit may use (GiB; 0: three quarters of this machine's). When the blend
+    cache does not fit beside the rest, it is streamed from disk a step's views at a time; a
+    budget below even that is refused before any work."""
     force: bool = False
     """Replace an existing output."""
 
@@ -113,12 +119,41 @@ def fit_field(
     }
     if run.resume and run.checkpoint.is_file():
         check_checkpoint(run.checkpoint, inputs, p.config(), shapes)
+    budget = memory_budget(run.max_memory_gib)
+    need = working_set(g.count, scene, train, sizes, dim, codebook.shape[0], p)
+    if need > budget:
+        raise GoiError(
+            f"--max-memory-gib: the fit needs at least {need / 2**30:.2f} GiB beside the blend "
+            f"cache (features, Gaussians, optimiser state, one view's rasterisation), more than "
+            f"the {budget / 2**30:.2f} GiB allowed; raise it, or use fewer views or a smaller "
+            "feature grid"
+        )
     cache_target(cache_path, scene, train, p.top_k, sizes, run.force)
 
-    fm = load_features(features_path, views)
-    cache = build_or_load(cache_path, scene, train, p.top_k, sizes, report, run.force)
-    fr = FeatureRenderer(cache, views)
-    targets = {v: torch.from_numpy(m.reshape(-1, fm.dim)) for v, m in fm.maps.items()}
+    fm = load_features(features_path, views, unit=False)
+    ensure_cache(cache_path, scene, train, p.top_k, sizes, report, run.force)
+    per_view = cache_nbytes(cache_path, views)
+    stream = need + sum(per_view.values()) > budget
+    if stream:
+        step_need = need + sum(sorted(per_view.values())[-p.views_per_step :])
+        if step_need > budget:
+            raise GoiError(
+                f"--max-memory-gib: even streaming the blend cache needs "
+                f"{step_need / 2**30:.2f} GiB (the largest {p.views_per_step} views' weights "
+                f"beside the rest), more than the {budget / 2**30:.2f} GiB allowed"
+            )
+        report.log(
+            f"streaming the blend cache from {cache_path}: its "
+            f"{sum(per_view.values()) / 2**30:.2f} GiB do not fit in "
+            f"{budget / 2**30:.2f} GiB beside the rest ({need / 2**30:.2f} GiB)"
+        )
+        fr = FeatureRenderer.from_file(cache_path, views[:1])
+        order = fr.order
+        for v in report.progress(views, "check cache", length=len(views)):
+            FeatureRenderer.from_file(cache_path, [v], order=order)
+    else:
+        fr = FeatureRenderer.from_file(cache_path, views)
+    targets = {v: m.reshape(-1, fm.dim) for v, m in fm.maps.items()}  # [cells, D] float16
 
     torch.manual_seed(p.seed)
     model = FieldModel(g.count, p.sem_dim, codebook, p.no_tfcc)
@@ -127,7 +162,8 @@ def fit_field(
             {"params": [model.features], "lr": p.lr_features, "eps": 1e-15},
             {"params": model.decoder.parameters(), "lr": p.lr_decoder},
             {"params": [model.codebook], "lr": p.lr_codebook},
-        ]
+        ],
+        fused=True,  # one pass over the [G, S] features and their two moments, not ten
     )
     rng = np.random.default_rng(p.seed)
     curve: list[list[float]] = []
@@ -144,6 +180,10 @@ def fit_field(
     steps = range(start, p.iterations)
     for it in report.progress(steps, "fit-field", length=len(steps), show=show):
         pick = rng.choice(len(views), min(p.views_per_step, len(views)), replace=False)
+        if stream:  # same rows in the same order as in memory: the same field, bit for bit
+            fr = FeatureRenderer.from_file(
+                cache_path, [views[i] for i in sorted(pick)], order=order, check=False
+            )
         rows, tgt = [], []
         for vi in sorted(pick):
             v = views[vi]
@@ -153,9 +193,10 @@ def fit_field(
             else:
                 cells = np.arange(n_cells)
             rows.append(fr.rows(v, cells))
-            tgt.append(targets[v][torch.from_numpy(cells)])
+            tgt.append(targets[v][cells])
         f_hat = fr.render(model.features, np.concatenate(rows))  # [B, S]
-        loss, parts = field_losses(model, f_hat, torch.cat(tgt), p.tau(it), p)
+        v_gt = torch.from_numpy(normalise(np.concatenate(tgt).astype(np.float32)))  # [B, D]
+        loss, parts = field_losses(model, f_hat, v_gt, p.tau(it), p)
         if not np.isfinite(parts[0]):
             raise GoiError(
                 f"fit-field diverged at iteration {it} (loss {parts[0]}): lower the learning rates"

@@ -165,7 +165,7 @@ def test_blend_cache_reader_on_arbitrary_contents(tmp_path_factory, doc):
         cache = BlendCache.load(p)
     except GoiError:
         return
-    out = FeatureRenderer(cache).render(torch.ones(n_g, 2), np.arange(w * h))
+    out = FeatureRenderer.from_cache(cache).render(torch.ones(n_g, 2), np.arange(w * h))
     assert torch.isfinite(out).all()
 
 

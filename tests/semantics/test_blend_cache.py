@@ -25,7 +25,7 @@ def _scene_dir(tmp_path, n=200, seed=0):
 def test_cache_render_equals_direct_render(tmp_path):
     scene = _scene_dir(tmp_path)
     cache = bc.build_or_load(tmp_path / "cache.h5", scene, scene.views("train"))
-    fr = FeatureRenderer(cache)
+    fr = FeatureRenderer.from_cache(cache)
     f = np.random.default_rng(0).normal(size=(scene.gaussians.count, 6)).astype(np.float32)
     from stages.render.rasterizer import Rasterizer
 
@@ -44,7 +44,7 @@ def test_cache_render_equals_direct_render(tmp_path):
 def test_gradient_matches_dense_transpose_and_finite_differences(tmp_path):
     scene = _scene_dir(tmp_path, n=120, seed=2)
     cache = bc.build_or_load(tmp_path / "cache.h5", scene, scene.views("train"))
-    fr = FeatureRenderer(cache)
+    fr = FeatureRenderer.from_cache(cache)
     rows = np.sort(np.random.default_rng(1).choice(fr.indptr.shape[0] - 1, 700, replace=False))
     f = torch.randn(scene.gaussians.count, 3, requires_grad=True)
     target = torch.randn(len(rows), 3)
@@ -145,8 +145,10 @@ def test_pooled_rows_render_the_mean_of_their_pixels(tmp_path):
     f = torch.from_numpy(
         np.random.default_rng(0).normal(size=(scene.gaussians.count, 4)).astype(np.float32)
     )
-    img = FeatureRenderer(full).render(f, np.arange(48 * 40)).numpy().reshape(40, 48, 4)
-    cells = FeatureRenderer(pooled, ["a"]).render(f, np.arange(35)).numpy().reshape(5, 7, 4)
+    img = FeatureRenderer.from_cache(full).render(f, np.arange(48 * 40)).numpy()
+    img = img.reshape(40, 48, 4)
+    cells = FeatureRenderer.from_cache(pooled, ["a"]).render(f, np.arange(35)).numpy()
+    cells = cells.reshape(5, 7, 4)
     ys = ((np.arange(40) + 0.5) * 5 / 40).astype(int)
     xs = ((np.arange(48) + 0.5) * 7 / 48).astype(int)
     for cy in range(5):
@@ -170,7 +172,7 @@ def test_sparse_gradient_does_not_depend_on_the_thread_count(tmp_path):
 
     write_ply(tmp_path / "p.ply", room_vertex(4000, seed=1)[0])
     rast = Rasterizer.from_gaussians(load_ply(tmp_path / "p.ply"))
-    fr = FeatureRenderer(build_cache(rast, ring_cameras(2, 64, 48), 0, "", ""))
+    fr = FeatureRenderer.from_cache(build_cache(rast, ring_cameras(2, 64, 48), 0, "", ""))
     rows = np.sort(np.random.default_rng(0).choice(2 * 64 * 48, 4000, replace=False))
     f = torch.randn(4000, 10, generator=torch.Generator().manual_seed(0), requires_grad=True)
     up = torch.randn(len(rows), 10, generator=torch.Generator().manual_seed(1))

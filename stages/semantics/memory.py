@@ -1,0 +1,71 @@
+"""How much memory a field fit needs, estimated from shapes before any work (`--max-memory-gib`).
+
+The estimate counts the large arrays a fit holds, not Python's overhead; the scale benchmark
+measures the real peak beside it (docs/performance.md).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from stages.core.errors import GoiError
+from stages.scene.cameras import Camera
+from stages.scene.scene import Scene
+from stages.semantics.feature_renderer import T_BLOCKS
+from stages.semantics.field_model import FieldParams
+
+GIB = 2**30
+
+#: Blend-weight entries per pixel of a full-resolution view while its cache row is built
+#: (measured 20-45 on the synthetic and dev rooms; the margin covers denser scenes), each an
+#: int64 row pointer share, an int32 id and a float32 weight, twice over while it is pooled.
+_ENTRIES_PER_PIXEL = 64
+_ENTRY_BYTES = 2 * (4 + 4) + 8
+
+
+def machine_memory() -> int:
+    """Physical memory, or the container's limit when lower (bytes)."""
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit.isdigit():
+            total = min(total, int(limit))
+    except OSError:
+        pass
+    return int(total)
+
+
+def memory_budget(max_memory_gib: float) -> int:
+    """The budget in bytes: the option, or three quarters of the machine when it is 0."""
+    if max_memory_gib == 0:
+        return machine_memory() * 3 // 4
+    if max_memory_gib * GIB > machine_memory():
+        raise GoiError(
+            f"--max-memory-gib: {max_memory_gib:g} GiB is more than this machine has "
+            f"({machine_memory() / GIB:.1f} GiB)"
+        )
+    return int(max_memory_gib * GIB)
+
+
+def working_set(
+    n_gaussians: int,
+    scene: Scene,
+    cameras: list[Camera],
+    sizes: dict[str, tuple[int, int]],
+    dim: int,
+    entries: int,
+    p: FieldParams,
+) -> int:
+    """Bytes a fit holds besides the blend cache's weights."""
+    cells = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
+    features = sum(w * h for w, h in cells.values()) * dim * 2  # float16
+    gaussians = scene.gaussians.vertex.nbytes * 3  # the PLY, its arrays, the rasteriser's
+    # features, gradient, Adam's two moments, the transpose's block buffers, two reorderings
+    optimiser = n_gaussians * p.sem_dim * 4 * (6 + T_BLOCKS)
+    per_step = max(w * h for w, h in cells.values()) * p.views_per_step
+    if p.cells_per_view:
+        per_step = min(per_step, p.cells_per_view * p.views_per_step)
+    batch = per_step * (entries * 4 * 4 + dim * (2 + 4 + 4))
+    raster = max(c.width * c.height for c in cameras) * _ENTRIES_PER_PIXEL * _ENTRY_BYTES
+    return features + gaussians + optimiser + batch + raster
