@@ -275,7 +275,6 @@ def build_cache_file(
     with kept_on_interrupt(partial, created=mode == "w"):
         with h5py.File(partial, mode, track_order=True) as f:
             if mode == "w":
-                stamp(f, SCHEMA, inputs)
                 f.attrs.update(n_gaussians=len(order), **identity)
                 put(f, "order", order)
                 f.create_group("views", track_order=True)
@@ -289,13 +288,13 @@ def build_cache_file(
             for cam in report.progress(todo, "blend cache", length=len(todo)):
                 _write_view(views, cam.name, view_weights(rast, cam, position, k, want[cam.name]))
                 f.flush()
-            stamp(f, SCHEMA, inputs)
+            stamp(f, SCHEMA, inputs)  # once, at the end: equal inputs give equal bytes
     with open(partial, "rb+") as fh:
         os.fsync(fh.fileno())
     os.replace(partial, path)
     report.log(
-        f"blend cache built in {time.perf_counter() - t:.1f}s: {len(cameras)} views, "
-        f"{path.stat().st_size / 2**30:.2f} GiB at {path}"
+        f"blend cache built in {time.perf_counter() - t:.1f} s ({len(cameras)} views, "
+        f"{path.stat().st_size / 2**30:.2f} GiB at {path})"
     )
 
 
