@@ -37,8 +37,9 @@ class PromptSources:
     text_embeddings: Path | None = None
     """JSON {text: [floats]} with the prompt's embedding (e.g. a room's text_embeddings.json)."""
     bundle: Path | None = None
-    """Model bundle whose text encoder embeds the prompt (and whose res model, if any, makes
-    the RES masks)."""
+    """Model bundle whose text encoder embeds the prompt (unless --text-embeddings lists it) and
+    whose RES, if any (a single model such as CLIPSeg, or Grounded-SAM), makes the RES masks
+    (unless --res-masks is given); the masks it made are written to OUT/<prompt>/res/."""
     res_masks: Path | None = None
     """RES masks from any tool: DIR/<view>.png, or DIR/<prompt id>/<view>.png with --prompt-id
     (default subdirectory: the prompt's safe name)."""

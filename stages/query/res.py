@@ -21,6 +21,7 @@ from stages.query.osh import HyperplaneParams
 from stages.query.prompts import safe_name, view_file_name
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
+from stages.semantics.bundle import Bundle, load_bundle
 from stages.semantics.decode import SemanticRenderer
 
 
@@ -75,10 +76,9 @@ class ResModel:
     pipeline), run on the RGB goi renders at each view. Each view's mask is computed once;
     `computed` keeps them, so the masks a fit used can be written beside its outputs."""
 
-    def __init__(self, bundle_dir: Path, prompt: str, renderer: SemanticRenderer):
-        from stages.semantics.bundle import load_bundle
-
-        self.bundle = load_bundle(bundle_dir)
+    def __init__(self, bundle_dir: Path | Bundle, prompt: str, renderer: SemanticRenderer):
+        # a loaded Bundle lets several prompts share one set of sessions (goi eval)
+        self.bundle = bundle_dir if isinstance(bundle_dir, Bundle) else load_bundle(bundle_dir)
         if not self.bundle.has_res:
             raise GoiError(
                 f"{bundle_dir}: the bundle has no RES ('res' or 'grounded'); pass --res-masks "

@@ -187,6 +187,16 @@ def clipseg(real: bool = False, seed: int = 0) -> Any:
     return realistic_init(model, seed)
 
 
+def clip_vit_b16(seed: int = 0) -> Any:
+    """CLIPModel at openai/clip-vit-base-patch16's configuration (the benchmarks' baseline)."""
+    import torch
+    from transformers import CLIPConfig, CLIPModel
+
+    cfg = CLIPConfig(vision_config=dict(patch_size=16), projection_dim=512)
+    torch.manual_seed(seed)
+    return realistic_init(CLIPModel._from_config(cfg, attn_implementation="eager").eval(), seed)
+
+
 def save_checkpoint(
     model: Any, root: Path, tokenizer: Any = None, preprocessor: dict | None = None
 ) -> Path:

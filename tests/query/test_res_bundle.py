@@ -97,3 +97,17 @@ def test_a_grounded_bundle_missing_a_model_leaves_nothing(setup, tmp_path, capsy
     err = capsys.readouterr().err
     assert "sam_encoder.onnx: no output named 'embeddings'" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_prompt_too_long_for_the_res_tokenizer_is_cut_with_a_warning(setup, capsys):
+    s, run, root, bundle = setup
+    long = " ".join([PROMPT] * 12)  # 36 words; the tiny detector's tokenizer takes 32 tokens
+    (root / "long.json").write_text(json.dumps({long: s["objects"][2].tolist()}))
+    argv = ["query", "--scene", str(s["scene"]), "--field", str(run / "field.h5"),
+            "--prompt", long, "--text-embeddings", str(root / "long.json"),
+            "--bundle", str(bundle), "--out", str(root / "long"), "--fit-views", "1"]  # fmt: skip
+    capsys.readouterr()
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "longer than the model's 32 tokens" in err and "it was cut to them" in err
+    assert len(list((root / "long" / safe_name(long) / "res").glob("*.png"))) == 1

@@ -148,7 +148,16 @@ def test_bad_checkpoints_are_refused_before_any_export(res_checkpoints, tmp_path
     wrong = tmp_path / "wrong"
     shutil.copytree(ck["clipseg"], wrong)  # CLIPSeg's weights under SAM's config
     shutil.copyfile(ck["sam"] / "config.json", wrong / "config.json")
+    pickled = tmp_path / "pickled"  # a .bin is never unpickled
+    pickled.mkdir()
+    shutil.copyfile(ck["sam"] / "config.json", pickled / "config.json")
+    (pickled / "pytorch_model.bin").write_bytes(b"not read")
+    owl = tmp_path / "owl"
+    owl.mkdir()
+    (owl / "config.json").write_text('{"model_type": "owlv2"}')
     cases = [
+        ([ck["detector"], pickled], ("pickled", "no model.safetensors", "pytorch_model.bin")),
+        ([owl, ck["sam"]], ("owl", "OWLv2 is not supported")),
         ([ck["detector"]], ("grounding-dino", "needs a SAM checkpoint too")),
         ([ck["sam"]], ("needs a Grounding DINO checkpoint too")),
         ([ck["detector"], ck["sam"], ck["clipseg"]], ("one RES",)),
@@ -162,4 +171,20 @@ def test_bad_checkpoints_are_refused_before_any_export(res_checkpoints, tmp_path
         assert err.count("\n") == 1 and err.startswith("goi: error:"), err
         for word in words:
             assert word in err, err
-        assert sorted(p.name for p in tmp_path.iterdir()) == ["wrong"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["owl", "pickled", "wrong"]
+
+
+def test_a_checkpoint_without_tokenizer_json_gets_one_built(tmp_path):
+    """Older checkpoints ship only the slow tokenizer's files: transformers converts them."""
+    from tokenizers import Tokenizer
+
+    from stages.semantics.export.common import tokenizer_json
+
+    (tmp_path / "vocab.txt").write_text("[PAD]\n[UNK]\n[CLS]\n[SEP]\n[MASK]\na\nred\nchair\n.\n")
+    (tmp_path / "tokenizer_config.json").write_text('{"tokenizer_class": "BertTokenizer"}')
+    (tmp_path / "config.json").write_text('{"model_type": "grounding-dino"}')
+    enc = Tokenizer.from_str(tokenizer_json(tmp_path)).encode("A red chair.")
+    assert enc.tokens == ["[CLS]", "a", "red", "chair", ".", "[SEP]"]
+    (tmp_path / "vocab.txt").unlink()
+    with pytest.raises(GoiError, match="tokenizer.json: missing, and the checkpoint has no"):
+        tokenizer_json(tmp_path)

@@ -120,7 +120,8 @@ def test_sam_at_a_smaller_input(res_checkpoints, tmp_path):
     from stages.semantics.export.sam import export_sam, resize_input
 
     ck = res_checkpoints
-    enc_spec, _, _ = export_sam(ck["sam"], tmp_path, 64, 17)
+    sam = _load(transformers.SamModel, ck["sam"])
+    enc_spec, _, _ = export_sam(sam, ck["sam"], tmp_path, 64, 17)
     assert enc_spec["size"] == [64, 64]
     model = _load(transformers.SamModel, ck["sam"])
     resize_input(model, 64)

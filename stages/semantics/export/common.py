@@ -94,12 +94,20 @@ def image_stats(src: Path, default_mean: Sequence[float], default_std: Sequence[
 
 def tokenizer_json(src: Path) -> str:
     """The checkpoint's fast tokenizer as tokenizer.json text: its own file, else converted by
-    transformers from the slow tokenizer's files (vocab.txt, or vocab.json + merges.txt)."""
+    transformers from the slow tokenizer's files (vocab.txt, vocab.json + merges.txt, or a
+    SentencePiece model). transformers builds an empty vocabulary rather than fail without
+    them, so they must be there."""
     path = src / "tokenizer.json"
     if path.is_file():
         from stages.core.files import read_text
 
         return read_text(path, "tokenizer.json")
+    slow = [("vocab.txt",), ("vocab.json", "merges.txt"), ("spiece.model",)]
+    if not any(all((src / f).is_file() for f in files) for files in slow):
+        raise GoiError(
+            f"{path}: missing, and the checkpoint has no tokenizer vocabulary to build it from "
+            "(vocab.txt, vocab.json + merges.txt, or spiece.model)"
+        )
     tf = transformers()
     try:
         tok = tf.AutoTokenizer.from_pretrained(str(src), use_fast=True)
