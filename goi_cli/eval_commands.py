@@ -23,14 +23,15 @@ from stages.evaluation.pipeline import EvalParams, EvalRun
 @click.option(
     "--res-masks",
     type=click.Path(path_type=Path),
-    required=True,
-    help="RES masks: DIR/<prompt id>/<view>.png on training views.",
+    default=None,
+    help="RES masks: DIR/<prompt id>/<view>.png on training views (or --bundle DIR).",
 )
 @dataclass_options(EvalRun)
 @dataclass_options(EvalParams)
-def eval_cmd(room: Path, features: Path, res_masks: Path, **kw) -> None:
+def eval_cmd(room: Path, features: Path, res_masks: Path | None, **kw) -> None:
     """Run the whole pipeline on a benchmark ROOM (layout: a room README) and score the masks on
-    its TEST views with the paper's metrics, for the four ablation variants."""
+    its TEST views with the paper's metrics, for the four ablation variants. The RES masks are
+    files (--res-masks) or made by a bundle's RES model (--bundle)."""
     from stages.evaluation.pipeline import run_eval
 
     p, run = build(EvalParams, kw), build(EvalRun, kw)

@@ -45,8 +45,10 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     W starts as the prompt's embedding and b as -threshold; SGD on the paper's weighted logistic
     loss (or the authors' hinge loss) until the plane's mask agrees with the RES mask. The plane
     is added to the hyperplanes artifact; the same prompt, field and masks are never refitted.
+    When the bundle's RES model makes the masks, the ones used are written beside the artifact
+    (<out's directory>/<prompt>/res/<view>.png).
     """
-    from stages.query.hyperplanes import fit_hyperplane
+    from stages.query.hyperplanes import fit_hyperplane, res_masks_dir, wrote_res_masks
     from stages.query.prompts import check_prompt, text_embedding
     from stages.query.res import res_source
     from stages.semantics.decode import SemanticRenderer
@@ -60,12 +62,16 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     text, text_source = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
     masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer)
-    plane, cached = fit_hyperplane(
-        renderer, field, scene.views("train"), prompt, text, text_source, masks, p, run, TERMINAL
-    )
+    with staged_outputs():  # the plane and the RES masks it was fitted on, or neither
+        train = scene.views("train")
+        plane, cached = fit_hyperplane(
+            renderer, field, train, prompt, text, text_source, masks, p, run, TERMINAL
+        )
     n = int(plane.positive.sum())
     state = "cached" if cached else "fitted"
     click.echo(f"hyperplane ({state}, {n} of {plane.scores.size} entries positive): {run.out}")
+    if wrote_res_masks(masks, cached):
+        click.echo(f"RES masks it was fitted on: {res_masks_dir(run.out, prompt)}")
 
 
 @click.command("render-mask")
@@ -191,6 +197,8 @@ def query_cmd(field: Path, prompt: str, **kw) -> None:
         state = "cached" if r.cached else "fitted"
         click.echo(f"hyperplane: {run.out / 'hyperplanes.h5'} ({state})")
     click.echo(f"masks:      {r.masks[0].parent} ({len(r.masks)} views, overlays beside them)")
+    if r.res_masks is not None:
+        click.echo(f"RES masks:  {r.res_masks} (made by the bundle's RES, the fit used them)")
     click.echo(f"selection:  {r.selection} ({r.n_selected} Gaussians)")
     click.echo(f"ply:        {r.ply if r.ply else '(none)'}")
 

@@ -62,3 +62,30 @@ def fitted(tmp_path_factory):
         == 0
     )
     return s, run
+
+
+#: The tiny Grounded-SAM bundle's settings (tests/semantics/test_grounded.py compares with them).
+GROUNDED = {"canvas": (96, 128), "box_threshold": 0.5, "max_boxes": 3, "mask_threshold": 0.0}
+
+
+@pytest.fixture(scope="session")
+def res_checkpoints(tmp_path_factory):
+    """Tiny random Grounding DINO, SAM (128 px) and CLIPSeg (64 px) checkpoints."""
+    pytest.importorskip("transformers")
+    from stages.testing.models import checkpoints
+
+    return checkpoints(tmp_path_factory.mktemp("res_ckpt"))
+
+
+@pytest.fixture(scope="session")
+def res_bundles(res_checkpoints, tmp_path_factory):
+    """The tiny checkpoints through `goi export-model`: {"grounded": dir, "clipseg": dir}."""
+    root = tmp_path_factory.mktemp("res_bundles")
+    ck, g = res_checkpoints, GROUNDED
+    argv = ["export-model", str(ck["detector"]), str(ck["sam"]), "--out", str(root / "grounded"),
+            "--detector-height", str(g["canvas"][0]), "--detector-width", str(g["canvas"][1]),
+            "--box-threshold", str(g["box_threshold"]),
+            "--max-boxes", str(g["max_boxes"])]  # fmt: skip
+    assert main(argv) == 0
+    assert main(["export-model", str(ck["clipseg"]), "--out", str(root / "clipseg")]) == 0
+    return {"grounded": root / "grounded", "clipseg": root / "clipseg"}

@@ -6,23 +6,27 @@ the overlays per prompt and their IoU against the scene's ground truth.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
+
+import numpy as np
 
 from stages.core.errors import GoiError
 from stages.core.files import make_dir
 from stages.core.params import AT_LEAST_1, check_params
 from stages.core.report import SILENT, Report
 from stages.evaluation.metrics import image_scores, mean_scores
-from stages.evaluation.report import esc, rel, write_page
+from stages.evaluation.report import esc, rel, res_row, write_page
 from stages.evaluation.room import Prompt, load_prompts
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryResult, QueryRun, run_query
-from stages.query.prompts import view_file_name
+from stages.query.prompts import safe_name, view_file_name
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
-from stages.scene.scene import load_scene
+from stages.scene.scene import Scene, load_scene
+from stages.semantics.bundle import load_bundle
 from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.extract import ExtractParams, ExtractRun, import_features
@@ -45,6 +49,9 @@ class DemoParams:
 class DemoRun:
     out: Path = Path("goi-demo")
     """Directory for everything the demo makes (index.html, artifacts, masks, PLYs)."""
+    bundle: Path | None = None
+    """Model bundle whose RES (docs/models.md) makes the RES masks on goi's rendering, instead
+    of the demo scene's mask files; the page shows the masks the fits used."""
 
 
 @dataclass
@@ -79,6 +86,12 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
     scene_dir = DEMO_SCENE
     if not (scene_dir / "point_cloud.ply").is_file():
         raise GoiError(f"{scene_dir}: the demo scene is missing from this installation")
+    if run.bundle is not None:  # opened and checked before the field is fitted
+        bundle = load_bundle(run.bundle)
+        if not bundle.has_res:
+            raise GoiError(f"--bundle: {run.bundle} has no RES ('res' or 'grounded')")
+        bundle.check_res()
+        del bundle
     out = Path(run.out)
     make_dir(out, "--out")
     scene = load_scene(scene_dir)
@@ -111,7 +124,12 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
             scene,
             field_path,
             prompt.text,
-            PromptSources(scene_dir / "text_embeddings.json", None, scene_dir / "res", prompt.id),
+            PromptSources(
+                scene_dir / "text_embeddings.json",
+                run.bundle,
+                None if run.bundle else scene_dir / "res",
+                prompt.id,
+            ),
             HyperplaneParams(),
             QueryParams(),
             QueryRun(out=out / "queries"),
@@ -124,15 +142,48 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
             scores.append(image_scores(pred, gt))
         answers.append(DemoAnswer(prompt, r, mean_scores(scores).iou if scores else None))
     page = out / "index.html"
-    _index(page, answers, scene.views("test"))
+    _index(page, answers, scene.views("test"), _res_masks(answers, renderer, scene))
     return DemoResult(page, field_path, answers)
 
 
-def _index(page: Path, answers: list[DemoAnswer], views: list[Camera]) -> None:
+def _res_masks(answers: list[DemoAnswer], renderer: SemanticRenderer, scene: Scene) -> dict:
+    """The RES masks a model made and the fits used (OUT/queries/<prompt>/res/), with the
+    rendering the model ran on: {prompt id: (source, {view: (rgb, mask)})}."""
+    out = {}
+    for a in answers:
+        r = a.result
+        source = str(r.info.get("mask_source", ""))
+        if not source.startswith("bundle:"):
+            continue
+        # a cached plane ran no model; its fit's masks are still in the prompt's res/
+        res_dir = r.res_masks or r.directory / "res"
+        figs = {}
+        for view in json.loads(r.info["views"]):
+            path = res_dir / f"{view_file_name(view)}.png"
+            if path.is_file():
+                rgb = renderer.rast.render_rgb(scene.camera(view)).image
+                rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+                figs[view] = (rgb8, read_mask(path))
+        if figs:
+            out[a.prompt.id] = (source, figs)
+    return out
+
+
+def _index(
+    page: Path, answers: list[DemoAnswer], views: list[Camera], res: dict | None = None
+) -> None:
+    res = res or {}
     body = [
         "<p>goi found the 3D Gaussians of interest of each prompt in the demo scene (a living "
         "room, 121k Gaussians). Masks are rendered on test views the field never saw: red is "
-        "goi's mask on its own rendering. IoU is against the scene's ground truth.</p>"
+        "goi's mask on its own rendering. IoU is against the scene's ground truth."
+        + (
+            " RES: the masks the bundle's RES model made on goi's rendering, which the "
+            "hyperplane was fitted on."
+            if res
+            else ""
+        )
+        + "</p>"
         "<table><tr><th class='l'>prompt</th><th>IoU</th><th>Gaussians</th>"
         "<th class='l'>PLY</th></tr>"
     ]
@@ -147,7 +198,12 @@ def _index(page: Path, answers: list[DemoAnswer], views: list[Camera]) -> None:
     body.append("</table>")
     for a in answers:
         r = a.result
-        body.append(f"<h2>{esc(r.prompt)}</h2><div>")
+        body.append(f"<h2>{esc(r.prompt)}</h2>")
+        if a.prompt.id in res:
+            files = page.with_name(page.stem + "_files")
+            make_dir(files, "--out")
+            body.append(res_row(res[a.prompt.id], files, page, safe_name(a.prompt.id)))
+        body.append("<div>")
         for cam in views:
             img = r.directory / "masks" / f"{view_file_name(cam.name)}.overlay.png"
             if img.is_file():

@@ -39,8 +39,10 @@ from stages.evaluation.variants import (
 )
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.osh import THRESHOLD, HyperplaneParams
-from stages.query.res import ResFiles
+from stages.query.res import ResFiles, ResModel, ResSource
 from stages.render.rasterizer import Rasterizer
+from stages.scene.scene import Scene
+from stages.semantics.bundle import Bundle, load_bundle
 from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.extract import ExtractParams, ExtractRun, feature_files, import_features
@@ -72,6 +74,9 @@ class EvalRun:
     """Directory for the intermediate artifacts (default: <out without .json>.work)."""
     text_embeddings: Path | None = None
     """Prompt embeddings JSON (default: the room's text_embeddings.json)."""
+    bundle: Path | None = None
+    """Model bundle whose RES (docs/models.md) makes the RES masks on goi's rendering of the
+    training views, instead of --res-masks; the HTML page shows the masks the fits used."""
     variants: str = ",".join(VARIANTS)
     """Comma-separated variants to run."""
     force: bool = False
@@ -160,6 +165,43 @@ def _fit_models(
     return tfcc, direct
 
 
+def _res_bundle(res: Path | None, bundle: Path | None) -> Bundle | None:
+    """The bundle whose RES makes the masks, its models opened and checked before any work;
+    None when the masks are files."""
+    if (res is None) == (bundle is None):
+        raise GoiError("give one of --res-masks DIR or --bundle DIR (a bundle with a RES)")
+    if bundle is None:
+        return None
+    b = load_bundle(bundle)
+    if not b.has_res:
+        raise GoiError(
+            f"--bundle: {bundle} has no RES ('res' or 'grounded'); pass --res-masks DIR instead"
+        )
+    b.check_res()
+    return b
+
+
+def _res_figures(
+    sources: dict[str, ResSource], doc: dict, renderer: SemanticRenderer, scene: Scene
+) -> dict[str, tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]]:
+    """For the page: each prompt's RES masks that a model made and a fit used, with the
+    rendering the model ran on. {prompt id: (source, {view: (rgb, mask)})}."""
+    out = {}
+    for pid, source in sources.items():
+        if not isinstance(source, ResModel):
+            continue
+        used: dict[str, None] = {}  # ordered set over the variants that fitted
+        for v in doc["variants"].values():
+            used.update(dict.fromkeys(v["prompts"][pid].get("fit_views", [])))
+        figs = {}
+        for view in used:
+            rgb = renderer.rast.render_rgb(scene.camera(view)).image
+            figs[view] = ((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), source.computed[view])
+        if figs:
+            out[pid] = (source.source, figs)
+    return out
+
+
 def _visibility(room: Room) -> np.ndarray:
     """[G] each Gaussian's blending weight summed over the training views."""
     rast = Rasterizer.from_gaussians(room.scene.gaussians)
@@ -210,12 +252,13 @@ def _summarise(variant_report: dict, with_3d: bool) -> None:
 def run_eval(
     room_dir: Path,
     features: Path,
-    res: Path,
+    res: Path | None,
     p: EvalParams,
     run: EvalRun,
     report: Report = SILENT,
 ) -> EvalResult:
-    """Run every variant on the room and write report.json (and the HTML page)."""
+    """Run every variant on the room and write report.json (and the HTML page). The RES masks
+    are the files under `res`, or made by `run.bundle`'s RES."""
     check_params(p)
     variants = _chosen_variants(run.variants)
     room = load_room(Path(room_dir), run.text_embeddings)
@@ -224,9 +267,12 @@ def run_eval(
             check_writable(Path(path), run.force)
     inputs = [room.scene.ply_path, *room.scene.camera_files, room.dir / "prompts.json"]
     refuse_inputs({"--out": run.out, "--html": run.html}, inputs)
-    # every prompt's RES masks are found, and the features and texts are checked to share one
-    # space, before anything is written
-    sources = {p.id: ResFiles(Path(res), p.id, p.text) for p in room.prompts}
+    # every prompt's RES masks are found (or the bundle's RES opened and checked), and the
+    # features and texts are checked to share one space, before anything is written
+    bundle = _res_bundle(res, run.bundle)
+    sources: dict[str, ResSource] = {}
+    if res is not None:
+        sources = {p.id: ResFiles(Path(res), p.id, p.text) for p in room.prompts}
     first = next(iter(feature_files(room.scene, Path(features), "train").values()))
     dim = load_feature_file(first).shape[0]
     text_dim = next(iter(room.embeddings.values())).size
@@ -243,6 +289,10 @@ def run_eval(
         f"eval: room {room.dir} ({scene.gaussians.count} Gaussians, {len(room.prompts)} prompts)"
     )
     tfcc, direct = _fit_models(room, features, work, variants, p, timer, report)
+    fitted = tfcc or direct
+    assert fitted is not None
+    if bundle is not None:  # one bundle, its sessions shared by every prompt
+        sources = {p.id: ResModel(bundle, p.text, fitted.renderer) for p in room.prompts}
     with timer("contribution_3d"):
         weight = _visibility(room) if room.gaussian_ids is not None else None
     test = {c.name for c in scene.views("test")}
@@ -295,7 +345,8 @@ def run_eval(
         if run.html is not None:
             with timer("html"):  # doc["timings_s"] is timer.t: the page's own time lands too
                 views_rgb = tfcc.views if tfcc is not None else {}
-                eval_page(Path(run.html), doc, room.prompts, figures, views_rgb, scene)
+                res_figs = _res_figures(sources, doc, fitted.renderer, scene)
+                eval_page(Path(run.html), doc, room.prompts, figures, views_rgb, scene, res_figs)
         validate_json(doc, "goi.eval", str(run.out))  # what we write, our reader must accept
         write_json(run.out, doc, force=True)
     return EvalResult(doc, Path(run.out), run.html)

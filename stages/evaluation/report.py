@@ -69,11 +69,35 @@ def rel(path: Path, page: Path) -> str:
     return esc(Path(os.path.relpath(path, page.parent)).as_posix())
 
 
+def res_row(
+    res: tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]], files: Path, page: Path, stem: str
+) -> str:
+    """A row of the RES masks a model made (red, on the rendering it ran on), written to
+    `files`."""
+    source, views = res
+    row = [f"<div><b>RES</b> <span class='key'>({esc(source)})</span><br>"]
+    for view, (rgb, mask) in views.items():
+        name = f"{stem}_res_{view_file_name(view)}.png"
+        write_png(files / name, overlay(rgb, mask), force=True)
+        row.append(
+            f"<figure><img src='{rel(files / name, page)}' alt='{esc(view)}'>{esc(view)}</figure>"
+        )
+    return "".join(row) + "</div>"
+
+
 def eval_page(
-    path: Path, report: dict, prompts: list, figures: dict, tfcc_views: dict, scene: Any
+    path: Path,
+    report: dict,
+    prompts: list,
+    figures: dict,
+    tfcc_views: dict,
+    scene: Any,
+    res: dict | None = None,
 ) -> None:
     """The eval report: metrics per variant and prompt, timings, and every test view's
-    prediction (red) against the ground truth (green outline), one row per variant."""
+    prediction (red) against the ground truth (green outline), one row per variant; when a RES
+    model made the RES masks, `res` ({prompt id: (source, {view: (rgb, mask)})}) adds a row
+    with the masks the fits used."""
     files = path.with_name(path.stem + "_files")
     make_dir(files, "--html")
     variants = list(report["variants"])
@@ -105,10 +129,18 @@ def eval_page(
         body.append(f"<tr><td class='l'>{esc(k)}</td><td>{fmt(float(t))}</td></tr>")
     body.append(
         "</table><h2>Test views</h2><p class='key'>red: predicted mask; green outline: "
-        "ground truth. Rows: variants.</p>"
+        "ground truth. Rows: variants"
+        + (
+            "; RES: the masks a RES model made on goi's rendering, which the fits used"
+            if res
+            else ""
+        )
+        + ".</p>"
     )
     for p in prompts:
         body.append(f"<h3>{esc(p.id)}: {esc(p.text)}</h3>")
+        if res and p.id in res:
+            body.append(res_row(res[p.id], files, path, safe_name(p.id)))
         for v in variants:
             preds, gts = figures[v][p.id]
             if not preds:

@@ -20,7 +20,7 @@ import numpy as np
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
 from stages.query.masks import mask_of
 from stages.query.osh import Counts, HyperplaneParams, fit_osh, threshold_plane
-from stages.query.res import ResFiles, choose_views
+from stages.query.res import ResSource, choose_views
 from stages.query.selection import select
 from stages.scene.cameras import Camera
 from stages.semantics.decode import COVERED_ALPHA, DecodedView, SemanticRenderer
@@ -98,7 +98,7 @@ class TfccModel:
         variant: str,
         prompt: str,
         text: np.ndarray,
-        source: ResFiles,
+        source: ResSource,
         train: list[Camera],
         hp: HyperplaneParams,
         planes: HyperplaneRun,
@@ -129,7 +129,7 @@ class DirectModel:
         self,
         variant: str,
         text: np.ndarray,
-        source: ResFiles,
+        source: ResSource,
         train: list[Camera],
         hp: HyperplaneParams,
         views: list[str],

@@ -24,7 +24,7 @@ from stages.core.params import check_params
 from stages.core.report import SILENT, Report
 from stages.query.osh import Counts, Hyperplane, HyperplaneParams, count_pixels, fit_osh
 from stages.query.prompts import safe_name
-from stages.query.res import ResSource, choose_views
+from stages.query.res import ResModel, ResSource, choose_views, write_res_masks
 from stages.scene.cameras import Camera
 from stages.semantics.decode import SemanticRenderer
 
@@ -38,6 +38,17 @@ class HyperplaneRun:
     it. A prompt already fitted with the same field, masks and options is reused as it is."""
     refit: bool = False
     """Fit again even when the artifact already holds this prompt."""
+
+
+def res_masks_dir(out: Path, prompt: str) -> Path:
+    """Where a fit writes the RES masks a model made for it: beside the hyperplanes artifact,
+    in the prompt's own directory (the one `goi query` writes the prompt's outputs to)."""
+    return Path(out).parent / safe_name(prompt) / "res"
+
+
+def wrote_res_masks(masks: ResSource, cached: bool) -> bool:
+    """Whether a fit wrote RES masks: it ran a model (a cached plane needs none)."""
+    return isinstance(masks, ResModel) and not cached
 
 
 def field_key(field_path: Path) -> str:
@@ -105,7 +116,8 @@ def fit_hyperplane(
     report: Report = SILENT,
 ) -> tuple[Hyperplane, bool]:
     """Fit (or reuse) the prompt's plane and store it in run.out; returns it and whether it
-    came from the artifact."""
+    came from the artifact. When a RES model made the masks, the ones the fit used are written
+    to `res_masks_dir(run.out, prompt)`."""
     check_params(p)
     out = Path(run.out)
     refuse_inputs({"--out": out}, [field_path])
@@ -149,6 +161,7 @@ def fit_hyperplane(
     )
     planes = {k: v for k, v in existing.items() if k != prompt}
     planes[prompt] = plane
+    write_res_masks(masks, [c.name for c, _ in chosen], res_masks_dir(out, prompt))
     _write(out, planes, {"field": field_sha})
     return plane, False
 

@@ -1,7 +1,8 @@
 """`goi query --prompt TEXT`: fit the hyperplane unless cached, render masks, select, export.
 
 The output directory holds hyperplanes.h5, the prompt cache shared by every query on the same
-field, and one directory per prompt (a safe name of it): masks/, selection.h5 and <name>.ply.
+field, and one directory per prompt (a safe name of it): masks/, selection.h5, <name>.ply, and
+res/ with the RES masks the fit used when a bundle's RES model made them.
 A query overwrites its own prompt's outputs, so re-running it is always safe.
 """
 
@@ -16,7 +17,7 @@ from stages.core.files import make_dir
 from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
-from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
+from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, res_masks_dir, wrote_res_masks
 from stages.query.masks import MODES, MaskParams, MaskRun, default_cameras, render_masks
 from stages.query.osh import HyperplaneParams, threshold_plane
 from stages.query.prompts import check_prompt, safe_name, text_embedding
@@ -36,8 +37,9 @@ class PromptSources:
     text_embeddings: Path | None = None
     """JSON {text: [floats]} with the prompt's embedding (e.g. a room's text_embeddings.json)."""
     bundle: Path | None = None
-    """Model bundle whose text encoder embeds the prompt (and whose res model, if any, makes
-    the RES masks)."""
+    """Model bundle whose text encoder embeds the prompt (unless --text-embeddings lists it) and
+    whose RES, if any (a single model such as CLIPSeg, or Grounded-SAM), makes the RES masks
+    (unless --res-masks is given); the masks it made are written to OUT/<prompt>/res/."""
     res_masks: Path | None = None
     """RES masks from any tool: DIR/<view>.png, or DIR/<prompt id>/<view>.png with --prompt-id
     (default subdirectory: the prompt's safe name)."""
@@ -76,6 +78,7 @@ class QueryResult:
     ply: Path | None
     n_selected: int
     info: dict
+    res_masks: Path | None = None  # the RES masks a model made for the fit, when one ran
 
 
 def run_query(
@@ -101,6 +104,7 @@ def run_query(
     if run.export == "highlight":
         parse_color(run.color, "--color")
     out = make_dir(run.out, "--out")
+    res_dir = None
     if qp.mode == "hyperplane":
         masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
         plane, cached = fit_hyperplane(
@@ -115,6 +119,8 @@ def run_query(
             HyperplaneRun(out / "hyperplanes.h5", refit=run.refit),
             report,
         )
+        if wrote_res_masks(masks, cached):
+            res_dir = res_masks_dir(out / "hyperplanes.h5", prompt)
     else:
         plane = threshold_plane(prompt, text, field.unit_codebook(), hp.threshold)
         cached = True
@@ -141,6 +147,6 @@ def run_query(
             edit,
             PlyExportRun(pdir / f"{safe_name(prompt)}.ply", force=True),
         )
-    return QueryResult(
-        prompt, pdir, cached, masks_written, sel_path, ply, int(sel.sum()), dict(plane.info)
-    )
+    n = int(sel.sum())
+    info = dict(plane.info)
+    return QueryResult(prompt, pdir, cached, masks_written, sel_path, ply, n, info, res_dir)

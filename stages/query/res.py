@@ -1,8 +1,10 @@
 """RES masks: where a prompt's 2D referring-expression masks come from, and which views to use.
 
-A source is either mask files made by any external tool (`ResFiles`) or a bundle's RES model run
-on goi's own rendering of a view (`ResModel`). Both answer `available(cams)` (views it can give
-a mask for), `mask(cam)` ([H, W] bool) and `digest(cams)` (changes when any mask would).
+A source is either mask files made by any external tool (`ResFiles`) or a bundle's RES (a
+single model, or a Grounded-SAM pipeline) run on goi's own rendering of a view (`ResModel`).
+Both answer `available(cams)` (views it can give a mask for), `mask(cam)` ([H, W] bool) and
+`digest(cams)` (changes when any mask would). The masks a model made for a fit are written
+beside the fit's outputs (`write_res_masks`).
 """
 
 from __future__ import annotations
@@ -12,12 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.core.artifacts import sha256_file
+from stages.core.artifacts import sha256_file, write_png
 from stages.core.errors import GoiError, warn
+from stages.core.files import make_dir
 from stages.query.osh import HyperplaneParams
-from stages.query.prompts import safe_name
+from stages.query.prompts import safe_name, view_file_name
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
+from stages.semantics.bundle import Bundle, load_bundle
 from stages.semantics.decode import SemanticRenderer
 
 
@@ -68,26 +72,33 @@ class ResFiles:
 
 
 class ResModel:
-    """RES masks from a bundle's res.onnx, run on the RGB rendered at each view."""
+    """RES masks from a bundle's RES (a single model such as CLIPSeg, or a Grounded-SAM
+    pipeline), run on the RGB goi renders at each view. Each view's mask is computed once;
+    `computed` keeps them, so the masks a fit used can be written beside its outputs."""
 
-    def __init__(self, bundle_dir: Path, prompt: str, renderer: SemanticRenderer):
-        from stages.semantics.bundle import load_bundle
-
-        self.bundle = load_bundle(bundle_dir)
+    def __init__(self, bundle_dir: Path | Bundle, prompt: str, renderer: SemanticRenderer):
+        # a loaded Bundle lets several prompts share one set of sessions (goi eval)
+        self.bundle = bundle_dir if isinstance(bundle_dir, Bundle) else load_bundle(bundle_dir)
         if not self.bundle.has_res:
             raise GoiError(
-                f"{bundle_dir}: the bundle has no 'res' model; pass --res-masks DIR instead"
+                f"{bundle_dir}: the bundle has no RES ('res' or 'grounded'); pass --res-masks "
+                "DIR instead"
             )
         self.prompt = prompt
         self.renderer = renderer
         self.source = f"bundle:{self.bundle.name}"
+        self.computed: dict[str, np.ndarray] = {}
 
     def available(self, cams: list[Camera]) -> list[Camera]:
         return cams
 
     def mask(self, cam: Camera) -> np.ndarray:
-        rgb = self.renderer.rast.render_rgb(cam).image
-        return self.bundle.segment((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), self.prompt)
+        if cam.name not in self.computed:
+            self.bundle.check_res()  # every model opened and checked before any work
+            rgb = self.renderer.rast.render_rgb(cam).image
+            rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+            self.computed[cam.name] = self.bundle.segment(rgb8, self.prompt)
+        return self.computed[cam.name]
 
     def digest(self, cams: list[Camera]) -> str:
         return hashlib.sha256(
@@ -96,6 +107,20 @@ class ResModel:
 
 
 ResSource = ResFiles | ResModel
+
+
+def write_res_masks(source: ResSource, views: list[str], directory: Path) -> list[Path]:
+    """The masks a RES model made for `views`, as directory/<view>.png (0/255), so the user can
+    see what a plane was fitted on. Mask files given with --res-masks are not copied."""
+    if not isinstance(source, ResModel):
+        return []
+    make_dir(directory, "--out")
+    written = []
+    for view in views:
+        path = directory / f"{view_file_name(view)}.png"
+        write_png(path, source.computed[view].astype(np.uint8) * 255, force=True)
+        written.append(path)
+    return written
 
 
 def res_source(
@@ -111,8 +136,8 @@ def res_source(
     if bundle is not None:
         return ResModel(bundle, prompt, renderer)
     raise GoiError(
-        "fitting a hyperplane needs RES masks: --res-masks DIR, or --bundle DIR with a res "
-        "model (or use --mode threshold where there is one)"
+        "fitting a hyperplane needs RES masks: --res-masks DIR, or --bundle DIR with a RES "
+        "(res or grounded; or use --mode threshold where there is one)"
     )
 
 

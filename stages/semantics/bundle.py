@@ -1,10 +1,12 @@
-"""Model bundles: a directory with manifest.json naming ONNX encoders, run with onnxruntime.
+"""Model bundles: a directory with manifest.json naming ONNX models, run with onnxruntime.
 
 The I/O contract (docs/models.md): the image encoder takes [1, 3, H, W] float32 (normalised as
 the manifest says) and returns dense features [1, D, h, w]; the text encoder takes token ids
-[1, L] int64 (and optionally an attention mask) and returns [1, D]. goi checks each model's
-inputs and outputs against the manifest before running it. No custom-operator library is ever
-registered, and manifest paths may not leave the bundle directory.
+[1, L] int64 (and optionally an attention mask) and returns [1, D]. A bundle's RES is either a
+single model (`res`: image + prompt -> mask scores, e.g. CLIPSeg) or a Grounded-SAM pipeline
+(`grounded`: detector + SAM, `stages.semantics.grounded`). goi checks each model's inputs and
+outputs against the manifest before running it. No custom-operator library is ever registered,
+and manifest paths may not leave the bundle directory.
 """
 
 from __future__ import annotations
@@ -22,55 +24,14 @@ from stages.core.arrays import normalise
 from stages.core.artifacts import sha256_files
 from stages.core.errors import GoiError
 from stages.core.files import read_json
+from stages.semantics import res_processing as rp
+from stages.semantics.grounded import GroundedSam, Grounding, check_spec
+from stages.semantics.onnx_io import Tokens, check_inputs_named, check_io, inside, session
 
 MANIFEST = "manifest.json"
-
-
-def _providers() -> list[str]:
-    import onnxruntime as ort
-
-    have = ort.get_available_providers()
-    return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in have]
-
-
-def _inside(root: Path, rel: str, where: str) -> Path:
-    p = (root / rel).resolve()
-    if not p.is_relative_to(root.resolve()):
-        raise GoiError(f"{where}: path {rel!r} points outside the bundle directory")
-    if not p.is_file():
-        raise GoiError(f"{where}: {rel} is missing from the bundle")
-    return p
-
-
-def _session(path: Path):  # noqa: ANN202
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.log_severity_level = 3
-    try:
-        return ort.InferenceSession(str(path), sess_options=opts, providers=_providers())
-    except Exception as e:  # onnxruntime raises its own exception types for bad models
-        raise GoiError(
-            f"{path}: not a loadable ONNX model ({str(e).splitlines()[0][:200]})"
-        ) from None
-
-
-def _check_io(
-    sess: Any, path: Path, kind: str, name: str, rank: int, fixed: dict[int, int]
-) -> None:
-    """The named input or output exists with the expected rank and fixed dimensions."""
-    items = sess.get_inputs() if kind == "input" else sess.get_outputs()
-    found = {i.name: i for i in items}
-    if name not in found:
-        raise GoiError(f"{path}: no {kind} named '{name}' (it has: {', '.join(found)})")
-    shape = found[name].shape
-    if len(shape) != rank:
-        raise GoiError(f"{path}: {kind} '{name}' has rank {len(shape)} {shape}, expected {rank}")
-    for axis, size in fixed.items():
-        if isinstance(shape[axis], int) and shape[axis] != size:
-            raise GoiError(
-                f"{path}: {kind} '{name}' has size {shape[axis]} on axis {axis}, expected {size}"
-            )
+#: How an image is resized to a model's `size`: OpenCV's area filter (schema 1.0's only way),
+#: or Pillow's bilinear filter, bit for bit, as the transformers image processors do it.
+RESIZE = ("area", "pil-bilinear")
 
 
 def _prepare(spec: dict, rgb: np.ndarray) -> np.ndarray:
@@ -78,13 +39,22 @@ def _prepare(spec: dict, rgb: np.ndarray) -> np.ndarray:
     import cv2
 
     img = rgb if spec["channel_order"].upper() == "RGB" else rgb[:, :, ::-1]
-    if spec.get("size"):
-        w, h = (int(v) for v in spec["size"])
-        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+    size = [int(v) for v in spec["size"]] if spec.get("size") else None
+    if spec.get("resize", "area") == "pil-bilinear":
+        hw = (size[1], size[0]) if size else img.shape[:2]
+        return rp.square_inputs(np.ascontiguousarray(img), hw, spec["mean"], spec["std"])
+    if size:
+        img = cv2.resize(img, (size[0], size[1]), interpolation=cv2.INTER_AREA)
     x = (img.astype(np.float32) / 255.0 - np.asarray(spec["mean"], np.float32)) / np.asarray(
         spec["std"], np.float32
     )
     return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
+
+
+def _tokens(root: Path, spec: dict, where: str) -> Tokens:
+    if spec["kind"] != "huggingface":
+        raise GoiError(f"{where}: tokenizer kind {spec['kind']!r} is not supported (huggingface)")
+    return Tokens(inside(root, spec["file"], where), int(spec["max_length"]), where)
 
 
 @dataclass
@@ -100,44 +70,39 @@ class Bundle:
     def dim(self) -> int:
         return int(self.manifest["feature_dim"])
 
+    @property
+    def where(self) -> str:
+        return str(self.root / MANIFEST)
+
     def digest(self) -> str:
         return sha256_files([p for p in self.root.rglob("*") if p.is_file()])
 
     @cached_property
     def _image_session(self) -> Any:
         spec = self._spec("image_encoder", "needed to encode images")
-        path = _inside(self.root, spec["file"], str(self.root / MANIFEST))
-        sess = _session(path)
-        _check_io(sess, path, "input", spec["input"], 4, {1: 3})
-        _check_io(sess, path, "output", spec["output"], 4, {1: self.dim})
+        path = inside(self.root, spec["file"], self.where)
+        sess = session(path)
+        check_io(sess, path, "input", spec["input"], 4, {1: 3})
+        check_io(sess, path, "output", spec["output"], 4, {1: self.dim})
         return sess
 
     @cached_property
-    def _text(self) -> tuple[Any, Any]:
+    def _text(self) -> tuple[Tokens, Any]:
         """The tokenizer and the checked text-encoder session."""
         spec = self._spec("text_encoder", "its tokenizer is needed for prompts")
-        where = str(self.root / MANIFEST)
-        tok_spec = spec["tokenizer"]
-        if tok_spec["kind"] != "huggingface":
-            raise GoiError(
-                f"{where}: tokenizer kind {tok_spec['kind']!r} is not supported (huggingface)"
-            )
-        from tokenizers import Tokenizer
-
-        tok = Tokenizer.from_file(str(_inside(self.root, tok_spec["file"], where)))
-        tok.enable_truncation(int(tok_spec["max_length"]))
-        path = _inside(self.root, spec["file"], where)
-        sess = _session(path)
-        _check_io(sess, path, "input", spec["input_ids"], 2, {0: 1})
+        tok = _tokens(self.root, spec["tokenizer"], self.where)
+        path = inside(self.root, spec["file"], self.where)
+        sess = session(path)
+        check_io(sess, path, "input", spec["input_ids"], 2, {0: 1})
         if spec.get("attention_mask"):
-            _check_io(sess, path, "input", spec["attention_mask"], 2, {0: 1})
-        _check_io(sess, path, "output", spec["output"], 2, {1: self.dim})
+            check_io(sess, path, "input", spec["attention_mask"], 2, {0: 1})
+        check_io(sess, path, "output", spec["output"], 2, {1: self.dim})
         return tok, sess
 
     def _spec(self, key: str, what: str) -> dict:
         spec = self.manifest.get(key)
         if spec is None:
-            raise GoiError(f"{self.root / MANIFEST}: this bundle has no {key} ({what})")
+            raise GoiError(f"{self.where}: this bundle has no {key} ({what})")
         return spec
 
     def encode_image(self, rgb: np.ndarray) -> np.ndarray:
@@ -152,69 +117,137 @@ class Bundle:
         return out[0].astype(np.float32)
 
     @cached_property
-    def _res_session(self) -> Any:
+    def _res(self) -> tuple[Any, Tokens]:
+        """The checked single RES model and its tokenizer (its own, else the text encoder's)."""
         spec = self.manifest["res"]
-        path = _inside(self.root, spec["file"], str(self.root / MANIFEST))
-        sess = _session(path)
-        _check_io(sess, path, "input", spec["image_input"], 4, {1: 3})
-        _check_io(sess, path, "input", spec["input_ids"], 2, {0: 1})
+        if spec.get("tokenizer"):
+            tok = _tokens(self.root, spec["tokenizer"], f"{self.where}: res.tokenizer")
+        else:
+            tok = self._text[0]
+        path = inside(self.root, spec["file"], self.where)
+        sess = session(path, low_memory=True)
+        check_io(sess, path, "input", spec["image_input"], 4, {1: 3})
+        named = [spec["image_input"], spec["input_ids"]]
+        check_io(sess, path, "input", spec["input_ids"], 2, {0: 1})
         if spec.get("attention_mask"):
-            _check_io(sess, path, "input", spec["attention_mask"], 2, {0: 1})
-        _check_io(sess, path, "output", spec["output"], 4, {1: 1})
-        return sess
+            check_io(sess, path, "input", spec["attention_mask"], 2, {0: 1})
+            named.append(spec["attention_mask"])
+        check_inputs_named(sess, path, named)
+        check_io(sess, path, "output", spec["output"], 4, {1: 1})
+        return sess, tok
+
+    @cached_property
+    def _grounded(self) -> GroundedSam:
+        return GroundedSam(self.root, self.manifest["grounded"], self.where)
 
     @property
     def has_res(self) -> bool:
-        return "res" in self.manifest
+        return "res" in self.manifest or "grounded" in self.manifest
+
+    @property
+    def res_kind(self) -> str | None:
+        """'grounded' (detector + SAM), 'model' (a single RES model) or None."""
+        return "grounded" if "grounded" in self.manifest else "model" if self.has_res else None
+
+    def check_res(self) -> None:
+        """Open the RES models and check every tensor the manifest names (cheap next to a
+        run; done anyway before the first image)."""
+        if not self.has_res:
+            self._spec("res", "a referring-segmentation model; pass --res-masks DIR")
+        if self.res_kind == "grounded":
+            self._grounded.check()
+        else:
+            _ = self._res
+
+    def ground(self, rgb: np.ndarray, text: str) -> Grounding:
+        """The RES mask of a prompt on an image, with the detector's boxes when the bundle's
+        RES is a grounded pipeline (none for a single model)."""
+        if not self.has_res:
+            self._spec("res", "a referring-segmentation model; pass --res-masks DIR")
+        if self.res_kind == "grounded":
+            return self._grounded.run(rgb, text)
+        spec = self.manifest["res"]
+        sess, tok = self._res
+        ids, att = tok.encode(text)
+        feed = {spec["image_input"]: _prepare(spec, rgb), spec["input_ids"]: ids}
+        if spec.get("attention_mask"):
+            feed[spec["attention_mask"]] = att
+        out = sess.run([spec["output"]], feed)[0]
+        if out.ndim != 4 or out.shape[:2] != (1, 1):
+            raise GoiError(
+                f"{self.root / spec['file']}: returned {list(out.shape)}, expected [1, 1, h, w]"
+            )
+        mask = rp.scores_to_mask(out[0, 0], rgb.shape[:2], float(spec["threshold"]))
+        return Grounding(mask, np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
 
     def segment(self, rgb: np.ndarray, text: str) -> np.ndarray:
-        """The RES mask of a prompt on an image: [H, W] uint8 RGB -> [H, W] bool."""
-        import cv2
-
-        spec = self._spec("res", "a referring-segmentation model; pass --res-masks DIR")
-        tok, _ = self._text
-        enc = tok.encode(text)
-        feed = {
-            spec["image_input"]: _prepare(spec, rgb),
-            spec["input_ids"]: np.asarray([enc.ids], np.int64),
-        }
-        if spec.get("attention_mask"):
-            feed[spec["attention_mask"]] = np.asarray([enc.attention_mask], np.int64)
-        score = self._res_session.run([spec["output"]], feed)[0][0, 0].astype(np.float32)
-        h, w = rgb.shape[:2]
-        score = cv2.resize(score, (w, h), interpolation=cv2.INTER_LINEAR)
-        return score > float(spec["threshold"])
+        """The RES mask of a prompt on an image: [H, W, 3] uint8 RGB -> [H, W] bool."""
+        return self.ground(rgb, text).mask
 
     def encode_text(self, text: str) -> np.ndarray:
         """A prompt -> its unit embedding [D]."""
         spec = self._spec("text_encoder", "pass --text-embeddings FILE instead")
         tok, sess = self._text
-        enc = tok.encode(text)
-        feed = {spec["input_ids"]: np.asarray([enc.ids], np.int64)}
+        ids, att = tok.encode(text)
+        feed = {spec["input_ids"]: ids}
         if spec.get("attention_mask"):
-            feed[spec["attention_mask"]] = np.asarray([enc.attention_mask], np.int64)
+            feed[spec["attention_mask"]] = att
         out = sess.run([spec["output"]], feed)[0][0].astype(np.float32)
         return normalise(out)
 
 
+def _check_image_spec(mf: Path, key: str, spec: dict) -> None:
+    for stat in ("mean", "std"):
+        if len(spec[stat]) != 3:
+            raise GoiError(f"{mf}: field '{key}.{stat}' needs 3 numbers")
+    if spec["channel_order"].upper() not in ("RGB", "BGR"):
+        raise GoiError(f"{mf}: field '{key}.channel_order' must be RGB or BGR")
+    if spec.get("resize", "area") not in RESIZE:
+        raise GoiError(f"{mf}: field '{key}.resize' must be one of {', '.join(RESIZE)}")
+    size = spec.get("size")
+    if size is not None and (len(size) != 2 or not all(isinstance(v, int) and v > 0 for v in size)):
+        raise GoiError(f"{mf}: field '{key}.size' needs [width, height] as two positive integers")
+
+
 def load_bundle(path: str | os.PathLike[str]) -> Bundle:
+    """Read and check a bundle's manifest: its fields, and that every file it names is in the
+    bundle. The models themselves are opened (and their tensors checked) when first used."""
     root = Path(path)
     mf = root / MANIFEST
     if not mf.is_file():
         raise GoiError(f"--bundle: {root} has no {MANIFEST}")
     manifest = read_json(mf)
     validate_json(manifest, "goi.bundle", str(mf))
-    if "image_encoder" not in manifest and "text_encoder" not in manifest:
-        raise GoiError(f"{mf}: needs at least one of 'image_encoder' and 'text_encoder'")
-    if "res" in manifest and "text_encoder" not in manifest:
-        raise GoiError(f"{mf}: 'res' uses the text encoder's tokenizer; add 'text_encoder'")
-    for key in ("image_encoder", "res"):
+    encoders = [k for k in ("image_encoder", "text_encoder") if k in manifest]
+    if not encoders and "res" not in manifest and "grounded" not in manifest:
+        raise GoiError(
+            f"{mf}: needs at least one of 'image_encoder', 'text_encoder', 'res' and 'grounded'"
+        )
+    if encoders and "feature_dim" not in manifest:
+        raise GoiError(f"{mf}: field 'feature_dim' is missing (needed with '{encoders[0]}')")
+    if "res" in manifest and "grounded" in manifest:
+        raise GoiError(f"{mf}: a bundle has one RES: either 'res' or 'grounded', not both")
+    res = manifest.get("res")
+    if res is not None and not res.get("tokenizer") and "text_encoder" not in manifest:
+        raise GoiError(
+            f"{mf}: 'res' uses the text encoder's tokenizer; add 'text_encoder' or 'res.tokenizer'"
+        )
+    for key in ("image_encoder", "text_encoder", "res"):
         spec = manifest.get(key)
         if spec is None:
             continue
-        for stat in ("mean", "std"):
-            if len(spec[stat]) != 3:
-                raise GoiError(f"{mf}: field '{key}.{stat}' needs 3 numbers")
-        if spec["channel_order"].upper() not in ("RGB", "BGR"):
-            raise GoiError(f"{mf}: field '{key}.channel_order' must be RGB or BGR")
+        inside(root, spec["file"], f"{mf}: {key}")
+        if key != "text_encoder":
+            _check_image_spec(mf, key, spec)
+        tok = spec.get("tokenizer")
+        if tok is not None:
+            _tokens_spec(root, tok, f"{mf}: {key}.tokenizer")
+    if "grounded" in manifest:
+        check_spec(root, manifest["grounded"], str(mf))
     return Bundle(root, manifest)
+
+
+def _tokens_spec(root: Path, spec: dict, where: str) -> None:
+    if spec["kind"] != "huggingface":
+        raise GoiError(f"{where}: tokenizer kind {spec['kind']!r} is not supported (huggingface)")
+    inside(root, spec["file"], where)

@@ -4,6 +4,7 @@ import pytest
 
 from goi_cli.main import main
 from stages.evaluation.demo import DEMO_SCENE, DemoParams, DemoRun, run_demo
+from stages.query.prompts import safe_name
 from stages.scene.gaussians import load_ply
 
 
@@ -26,3 +27,20 @@ def test_demo_finds_the_prompts_objects(tmp_path):
     # the CLI runs it too, over the outputs of a previous run
     assert main(["demo", "--out", str(tmp_path), "--iterations", "20", "--prompts", "p08"]) == 0
     assert main(["demo", "--out", str(tmp_path), "--prompts", "p99"]) == 2
+
+
+@pytest.mark.slow
+def test_demo_with_a_res_bundle_shows_the_res_masks(tmp_path, res_bundles):
+    """goi demo --bundle: the bundle's RES makes the masks; the page shows the ones used."""
+    argv = ["demo", "--out", str(tmp_path), "--iterations", "20", "--prompts", "p08",
+            "--bundle", str(res_bundles["grounded"])]  # fmt: skip
+    assert main(argv) == 0
+    page = (tmp_path / "index.html").read_text()
+    res = next((tmp_path / "queries").glob("*/res"))
+    views = sorted(p.stem for p in res.glob("*.png"))
+    assert views and "<b>RES</b>" in page
+    for view in views:
+        name = f"{safe_name('p08')}_res_{view}.png"
+        assert f"index_files/{name}" in page and (tmp_path / "index_files" / name).is_file()
+    assert main(["demo", "--out", str(tmp_path / "x"), "--bundle", str(tmp_path)]) == 2
+    assert not (tmp_path / "x").exists()

@@ -1,6 +1,7 @@
 """goi eval end to end on a small synthetic room in the benchmark layout."""
 
 import json
+import shutil
 
 import cv2
 import numpy as np
@@ -8,6 +9,7 @@ import pytest
 
 from goi_cli.main import main
 from schemas import validate_json
+from stages.query.prompts import safe_name
 from stages.render.rasterizer import Rasterizer
 from stages.scene.gaussians import load_ply
 from tests.helpers import semantic_scene
@@ -60,3 +62,41 @@ def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
     page = (tmp_path / "r.html").read_text()
     assert "&lt;b&gt;object 1&lt;/b&gt;" in page and "<b>object" not in page
     assert main(argv) == 2  # the report exists: --force is needed
+
+
+@pytest.mark.slow
+def test_eval_with_a_res_bundle_shows_the_masks_its_fits_used(tmp_path, res_bundles, capsys):
+    """--bundle instead of --res-masks: the bundle's RES (a tiny random Grounded-SAM) makes the
+    masks; the page shows the ones the fits used, and the full variant's are in the work dir."""
+    s, room = make_room(tmp_path)
+    out, html = tmp_path / "r.json", tmp_path / "r.html"
+    argv = ["eval", str(room), "--features", str(s["features"]), "--out", str(out),
+            "--iterations", "150", "--entries", "16",
+            "--variants", "full,without_tfcc"]  # fmt: skip
+    bundle = res_bundles["grounded"]
+    bad = tmp_path / "bad_bundle"
+    shutil.copytree(bundle, bad)
+    (bad / "sam_encoder.onnx").unlink()
+    cases = [
+        ([], "give one of --res-masks DIR or --bundle DIR"),
+        (["--res-masks", str(room / "res"), "--bundle", str(bundle)], "give one of"),
+        (["--bundle", str(bad)], "sam_encoder.onnx is missing"),
+    ]
+    for extra, words in cases:  # refused before anything is written
+        capsys.readouterr()
+        assert main(argv + extra) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("goi: error:") and words in err, err
+        assert not out.exists() and not (tmp_path / "r.work").exists()
+    assert main(argv + ["--bundle", str(bundle), "--html", str(html)]) == 0
+    r = json.loads(out.read_text())
+    validate_json(r, "goi.eval", str(out))
+    page = html.read_text()
+    assert "<b>RES</b>" in page and "bundle:" in page
+    for pid, text in (("p1", "<b>object 1</b>"), ("p2", "<b>object 2</b>")):
+        views = r["variants"]["full"]["prompts"][pid]["fit_views"]
+        assert views and r["variants"]["without_tfcc"]["prompts"][pid]["fit_views"] == views
+        for view in views:
+            name = f"{safe_name(pid)}_res_{view}.png"
+            assert f"r_files/{name}" in page and (tmp_path / "r_files" / name).is_file()
+            assert (tmp_path / "r.work" / safe_name(text) / "res" / f"{view}.png").is_file()

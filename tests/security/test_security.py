@@ -67,12 +67,15 @@ def test_eval_page_escapes_prompts_and_views(tmp_path):
         "variants": {"full": {"miou": 0.5, "mpa": 0.5, "mp": 0.5, "prompts": {
             "p1": {"iou": 0.5, "views": {}}}}},
     }  # fmt: skip
+    res = {"p1": (bad, {bad: (np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), bool))})}
     eval_page(
         tmp_path / "r.html", report, [Prompt("p1", bad, [1], [], "")],
-        {"full": {"p1": [{}, {}]}}, {}, None,
+        {"full": {"p1": [{}, {}]}}, {}, None, res,
     )  # fmt: skip
     page = (tmp_path / "r.html").read_text()
     assert "<img src=x" not in page and "&lt;img src=x onerror=alert(1)&gt;" in page
+    assert "<b>RES</b>" in page  # the RES row's source and view name are escaped too
+    assert all(p.parent == tmp_path / "r_files" for p in tmp_path.rglob("*.png"))
 
 
 def test_onnx_custom_operators_are_never_loaded(tmp_path):

@@ -66,7 +66,7 @@ def _image(seed=0, h=40, w=50):
 
 
 def test_clip_bundle_matches_torch(clip):
-    from stages.semantics.export_model import DenseCLIP
+    from stages.semantics.export.clip import DenseCLIP
 
     model, tok, bundle = clip
     assert bundle.dim == 16
@@ -95,7 +95,7 @@ def test_clip_bundle_matches_torch(clip):
 def test_dense_tap_on_class_token_is_the_global_embedding(clip):
     """The value-only path is attention with every token attending to itself: on the class
     token alone they coincide, and the tap's head on the class token is CLIP's own embedding."""
-    from stages.semantics.export_model import DenseCLIP
+    from stages.semantics.export.clip import DenseCLIP
 
     model, _, _ = clip
     dense = DenseCLIP.build(model, 32)
@@ -136,7 +136,7 @@ def test_clip_export_at_larger_size(clip, tmp_path):
 def test_export_refuses_unknown_checkpoints(tmp_path, capsys):
     (tmp_path / "config.json").write_text(json.dumps({"model_type": "llama"}))
     assert main(["export-model", str(tmp_path), "--out", str(tmp_path / "b")]) == 2
-    assert "neither a CLIP" in capsys.readouterr().err
+    assert "not one goi exports" in capsys.readouterr().err
     assert main(["export-model", str(tmp_path / "nope"), "--out", str(tmp_path / "b")]) == 2
 
 

@@ -1,0 +1,163 @@
+"""The RES models at their real configurations, with random weights (the cost does not depend
+on the values): written as checkpoints, exported by `goi export-model` (so the real-size
+check against torch runs too), then timed per view in onnxruntime on a 640x480 image.
+
+Figures (seconds unless named otherwise):
+  clip_image_encoder_s_224          baseline: CLIP ViT-B/16's dense image encoder, 224 px
+  clipseg_s_per_view                CLIPSeg rd64-refined at 352, pre- and post-processing included
+  grounded_sam_s_per_view           Grounding DINO tiny (600x800 canvas) + SAM ViT-B (1024), the
+                                    whole pipeline: detector, encoder, a decoder run per box
+  grounded_sam_fast_s_per_view      the same with a 480x640 canvas and SAM at 512
+  detector_s_<canvas>, sam_encoder_s_<size>, sam_decoder_s_per_box_<size>: the parts
+  grounded_boxes_per_view           boxes the random detector kept (max_boxes caps it at 8)
+  *_cpu_s*                          the same runs' process CPU seconds (both threads, median):
+                                    on a shared machine the wall time is inflated by the other
+                                    jobs; CPU seconds / threads estimates it on idle cores
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import resource
+import shutil
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+PROMPT = "a red chair"
+
+
+def loadavg() -> float:
+    return float(Path("/proc/loadavg").read_text().split()[0])
+
+
+def _log(message: str) -> None:
+    print(f"[models {time.strftime('%H:%M:%S')} load {loadavg():.2f}] {message}", flush=True)
+
+
+def _export(sources: list[Path], out: Path, **params: int) -> tuple[Path, float]:
+    from stages.semantics.export import ModelExportParams, ModelExportRun, export_model
+
+    t = time.perf_counter()
+    export_model(sources, ModelExportParams(**params), ModelExportRun(out))
+    return out, time.perf_counter() - t
+
+
+def _timed(
+    out: dict[str, float],
+    key: str,
+    fn: Callable[[], object],
+    median_s: Callable[..., float],
+    repeat: int,
+) -> None:
+    """out[key]: median wall seconds of fn(); out[key with _s_ -> _cpu_s_]: its median process
+    CPU seconds (median_s's warm-up run excluded)."""
+    cpu: list[float] = []
+
+    def run() -> None:
+        t = time.process_time()
+        fn()
+        cpu.append(time.process_time() - t)
+
+    out[key] = median_s(run, repeat)
+    out[key.replace("_s_", "_cpu_s_", 1)] = statistics.median(cpu[1:])
+
+
+def _median(
+    out: dict[str, float],
+    key: str,
+    bundle_dir: Path,
+    call: Callable,
+    median_s: Callable[..., float],
+    repeat: int,
+) -> None:
+    """Time `call(bundle)` (the bundle and its sessions are freed on return)."""
+    from stages.semantics.bundle import load_bundle
+
+    bundle = load_bundle(bundle_dir)
+    _timed(out, key, lambda: call(bundle), median_s, repeat)
+
+
+def _grounded(
+    out: dict[str, float],
+    bundle_dir: Path,
+    rgb: object,
+    key: str,
+    median_s: Callable[..., float],
+    repeat: int,
+) -> None:
+    import numpy as np
+
+    from stages.semantics import res_processing as rp
+    from stages.semantics.bundle import load_bundle
+
+    bundle = load_bundle(bundle_dir)
+    g = bundle._grounded
+    g.check()
+    d, e, m, _ = g._models
+    spec = bundle.manifest["grounded"]
+    h, w = g.canvas
+    s = g.sam_size
+    img = np.asarray(rgb)
+    _timed(out, f"detector_s_{h}x{w}", lambda: g.detect(img, PROMPT), median_s, repeat)
+    pixels = rp.sam_inputs(img, s)
+    enc = spec["sam_encoder"]
+    _timed(out, f"sam_encoder_s_{s}", lambda: e.run(None, {enc["input"]: pixels}), median_s, repeat)
+    emb = e.run(None, {enc["input"]: pixels})[0]
+    box = rp.sam_boxes(np.asarray([[100, 80, 400, 360]]), img.shape[:2], s)
+    feed = {spec["sam_decoder"]["image_embeddings"]: emb, spec["sam_decoder"]["boxes"]: box}
+    out[f"sam_decoder_s_per_box_{s}"] = median_s(lambda: m.run(None, feed), repeat)
+    _timed(out, key, lambda: bundle.ground(img, PROMPT), median_s, repeat)
+    out["grounded_boxes_per_view"] = float(len(bundle.ground(img, PROMPT).boxes))
+
+
+def suite_models(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
+    from stages.semantics.export.grounding_dino import check_image
+    from stages.testing import models as M
+
+    repeat = max(3, min(repeat, 5))
+    out: dict[str, float] = {
+        "loadavg_1min_start": loadavg(),
+        "cpu_count": float(os.cpu_count() or 0),
+    }
+    rgb = check_image(480, 640)
+    clip_tok = M.clip_tokenizer(49408)
+
+    _log("CLIP ViT-B/16 (baseline): checkpoint, export")
+    ck = M.save_checkpoint(M.clip_vit_b16(), tmp / "clip", clip_tok)
+    b, _ = _export([ck], tmp / "b_clip")
+    _median(out, "clip_image_encoder_s_224", b, lambda x: x.encode_image(rgb), median_s, repeat)
+    shutil.rmtree(ck)
+
+    _log("CLIPSeg rd64-refined: checkpoint, export")
+    ck = M.save_checkpoint(M.clipseg(True), tmp / "clipseg", clip_tok, {"size": 352})
+    b, out["clipseg_export_s"] = _export([ck], tmp / "b_clipseg")
+    _log("CLIPSeg: timing")
+    _median(out, "clipseg_s_per_view", b, lambda x: x.segment(rgb, PROMPT), median_s, repeat)
+    shutil.rmtree(ck)
+    gc.collect()
+
+    _log("Grounding DINO tiny + SAM ViT-B: checkpoints, export (600x800, SAM 1024)")
+    det = M.save_checkpoint(M.grounding_dino(True), tmp / "gd", M.bert_tokenizer())
+    sam = M.save_checkpoint(M.sam(True), tmp / "sam")
+    b, out["grounded_export_s"] = _export([det, sam], tmp / "b_grounded")
+    gc.collect()
+    _log("Grounded-SAM: timing")
+    _grounded(out, b, rgb, "grounded_sam_s_per_view", median_s, repeat)
+    shutil.rmtree(b)
+    gc.collect()
+
+    _log("Grounded-SAM fast: export (480x640, SAM 512)")
+    b, _ = _export(
+        [det, sam], tmp / "b_fast", detector_height=480, detector_width=640, sam_size=512
+    )
+    gc.collect()
+    _log("Grounded-SAM fast: timing")
+    _grounded(out, b, rgb, "grounded_sam_fast_s_per_view", median_s, repeat)
+    out["grounded_sam_over_clip"] = out["grounded_sam_s_per_view"] / out["clip_image_encoder_s_224"]
+    out["clipseg_over_clip"] = out["clipseg_s_per_view"] / out["clip_image_encoder_s_224"]
+    out["peak_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    out["loadavg_1min_end"] = loadavg()
+    return out

@@ -1,0 +1,267 @@
+"""`goi export-model`: local Hugging Face checkpoints -> one model bundle (docs/models.md).
+
+Each SOURCE is a checkpoint directory, recognised by its config.json (safetensors weights only):
+- a CLIP checkpoint: a dense MaskCLIP image encoder and the text encoder (`clip`);
+- a sentence-transformers checkpoint (modules.json): a text encoder (`sentence`);
+- a CLIPSeg checkpoint: a single-model RES, `res.onnx` (`clipseg`);
+- a Grounding DINO and a SAM checkpoint, together: a Grounded-SAM RES, `detector.onnx`,
+  `sam_encoder.onnx` and `sam_decoder.onnx` (`grounding_dino`, `sam`).
+A bundle holds at most one encoder source and one RES. Every source is read and checked before
+anything is exported (its config, weights and tokenizer, then the model itself is loaded);
+every exported ONNX file is run once with onnxruntime and compared with
+torch before the bundle is written (`common`), and the bundle appears complete or not at all.
+Needs the optional extra `goi[export]` (transformers).
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any
+
+from stages.core.errors import GoiError
+from stages.core.files import make_dir
+from stages.core.params import FRACTION, Range, check_params
+from stages.core.report import SILENT, Report
+from stages.semantics.bundle import MANIFEST, load_bundle
+from stages.semantics.export.common import (
+    checkpoint_json,
+    has_weights,
+    load_model,
+    tokenizer_json,
+    transformers,
+)
+
+#: config.json model_type -> what goi makes of the checkpoint.
+KINDS = {"clip": "clip", "grounding-dino": "detector", "sam": "sam", "clipseg": "clipseg"}
+#: kind -> the transformers class it is loaded with, and its name in messages.
+CLASSES = {
+    "clip": ("CLIPModel", "CLIP"),
+    "sentence": ("AutoModel", "sentence-transformers"),
+    "detector": ("GroundingDinoForObjectDetection", "Grounding DINO"),
+    "sam": ("SamModel", "SAM"),
+    "clipseg": ("CLIPSegForImageSegmentation", "CLIPSeg"),
+}
+
+
+@dataclass
+class ModelExportParams:
+    image_size: Annotated[int, Range(ge=0, le=4096)] = 0
+    """CLIP only: square input size of the image encoder (a multiple of the patch size); the
+    position embeddings are resampled to it. 0: the checkpoint's own size. Larger sizes give
+    finer dense features."""
+    detector_height: Annotated[int, Range(ge=96, le=2048)] = 600
+    """Grounding DINO only: height of the detector's input canvas, fixed at export. Images are
+    resized to fit the canvas (aspect kept) and padded; match its shape to your views' (the
+    checkpoint's own processor uses a shortest edge of 800; smaller is faster)."""
+    detector_width: Annotated[int, Range(ge=96, le=2048)] = 800
+    """Grounding DINO only: width of the detector's input canvas, fixed at export."""
+    sam_size: Annotated[int, Range(ge=0, le=2048)] = 0
+    """SAM only: side of the encoder's square input (a multiple of 16). 0: the checkpoint's own
+    (1024). Smaller resamples the position embeddings: faster, but SAM was not trained so."""
+    box_threshold: Annotated[float, FRACTION] = 0.3
+    """Grounded-SAM: a detected box is used when its best token probability exceeds this
+    (GOI's value)."""
+    max_boxes: Annotated[int, Range(ge=1, le=100)] = 8
+    """Grounded-SAM: at most this many boxes per image, the best scoring, prompt SAM."""
+    mask_threshold: Annotated[float, Range(ge=-50, le=50)] = 0.0
+    """Grounded-SAM: a pixel is in a box's mask when SAM's mask logit exceeds this."""
+    res_threshold: Annotated[float, FRACTION] = 0.4
+    """CLIPSeg: a pixel is in the mask when its probability exceeds this."""
+    opset: Annotated[int, Range(ge=14, le=23)] = 17
+    """ONNX opset version."""
+
+
+@dataclass
+class ModelExportRun:
+    out: Path
+    """Bundle directory to create."""
+    force: bool = False
+    """Replace an existing bundle directory."""
+
+
+@dataclass
+class Source:
+    path: Path
+    kind: str  # clip | sentence | detector | sam | clipseg
+    config: dict
+    tokenizer: str | None = None  # tokenizer.json text
+    modules: list | None = None  # sentence-transformers' modules.json
+    model: Any = None  # the loaded transformers model, until it is exported
+
+    def load(self) -> None:
+        cls, what = CLASSES[self.kind]
+        self.model = load_model(getattr(transformers(), cls), self.path, what)
+
+    def take(self) -> Any:
+        """The model, handed over once (so the export holds the only reference)."""
+        model, self.model = self.model, None
+        return model
+
+
+def _source(path: Path, opts: ModelExportParams) -> Source:
+    """What a checkpoint directory is, with its weights and tokenizer checked."""
+    src = Path(path)
+    if not src.is_dir():
+        raise GoiError(f"SOURCE: {src} is not a checkpoint directory")
+    cfg = checkpoint_json(src / "config.json")
+    if not isinstance(cfg, dict):
+        raise GoiError(f"{src / 'config.json'}: expected a JSON object")
+    model_type = cfg.get("model_type")
+    if model_type == "owlv2":
+        raise GoiError(
+            f"{src / 'config.json'}: OWLv2 is not supported; goi's detector is Grounding DINO "
+            "(docs/models.md says why)"
+        )
+    modules = None
+    if model_type in KINDS:
+        kind = KINDS[model_type]
+    elif (src / "modules.json").is_file():
+        kind, modules = "sentence", checkpoint_json(src / "modules.json")
+        if not isinstance(modules, list):
+            raise GoiError(f"{src / 'modules.json'}: expected a JSON list")
+    else:
+        raise GoiError(
+            f"{src / 'config.json'}: model_type {model_type!r} is not one goi exports: CLIP, a "
+            "sentence-transformers model (modules.json), Grounding DINO, SAM or CLIPSeg"
+        )
+    has_weights(src)
+    s = Source(src, kind, cfg, modules=modules)
+    if kind == "sam" and opts.sam_size:
+        patch = int((cfg.get("vision_config") or {}).get("patch_size", 16))
+        if opts.sam_size % patch:
+            raise GoiError(f"--sam-size: {opts.sam_size} is not a multiple of {patch}")
+    if kind != "sam":
+        s.tokenizer = tokenizer_json(src)
+    return s
+
+
+def _plan(sources: list[Source]) -> dict[str, Source]:
+    """The sources by role; at most one encoder and one RES, and a detector goes with SAM."""
+    by_kind: dict[str, Source] = {}
+    for s in sources:
+        role = "encoder" if s.kind in ("clip", "sentence") else s.kind
+        if role in by_kind:
+            raise GoiError(
+                f"SOURCE: {by_kind[role].path} and {s.path} are both {role} checkpoints; a "
+                "bundle holds one"
+            )
+        by_kind[role] = s
+    if ("detector" in by_kind) != ("sam" in by_kind):
+        have, need = ("detector", "SAM") if "detector" in by_kind else ("sam", "Grounding DINO")
+        raise GoiError(
+            f"SOURCE: {by_kind[have].path} alone makes no RES; Grounded-SAM needs a {need} "
+            "checkpoint too"
+        )
+    if "clipseg" in by_kind and "detector" in by_kind:
+        raise GoiError("SOURCE: a bundle has one RES: CLIPSeg or Grounding DINO + SAM, not both")
+    return by_kind
+
+
+def _check_out(out: Path, sources: list[Source], force: bool) -> None:
+    for s in sources:
+        if out.resolve() == s.path.resolve() or s.path.resolve().is_relative_to(out.resolve()):
+            raise GoiError(f"--out: {out} holds the checkpoint {s.path}; choose another directory")
+    if out.exists() and not force:
+        raise GoiError(f"--out: {out} already exists; pass --force to replace the bundle")
+    if out.exists() and not out.is_dir():
+        raise GoiError(f"--out: {out} is a file; a bundle is a directory")
+    if out.exists() and not (out / MANIFEST).is_file() and any(out.iterdir()):
+        raise GoiError(f"--out: {out} is not a model bundle; goi replaces only a bundle")
+
+
+def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report: Report) -> dict:
+    manifest: dict[str, Any] = {"export_checks": {}}
+
+    def done(part: dict) -> None:
+        checks = part.pop("export_checks", {})
+        manifest.update(part)
+        manifest["export_checks"].update(checks)
+        for name, c in checks.items():
+            report.log(
+                f"{name}: checked against torch (largest difference {c['max_abs_error']:.1e}, "
+                f"outputs up to {c['max_abs_output']:.3g})"
+            )
+        gc.collect()  # one model in memory at a time
+
+    enc = plan.get("encoder")
+    if enc is not None and enc.kind == "clip":
+        from stages.semantics.export.clip import export_clip
+
+        assert enc.tokenizer is not None
+        done(export_clip(enc.take(), enc.path, tmp, enc.tokenizer, opts.image_size, opts.opset))
+    elif enc is not None:
+        from stages.semantics.export.sentence import export_sentence
+
+        assert enc.tokenizer is not None and enc.modules is not None
+        done(export_sentence(enc.take(), enc.path, tmp, enc.tokenizer, enc.modules, opts.opset))
+    if "clipseg" in plan:
+        from stages.semantics.export.clipseg import export_clipseg
+
+        s = plan["clipseg"]
+        assert s.tokenizer is not None
+        thr = opts.res_threshold
+        done(export_clipseg(s.take(), s.path, tmp, s.tokenizer, thr, opts.opset))
+    if "detector" in plan:
+        from stages.semantics.export.grounding_dino import export_detector
+        from stages.semantics.export.sam import export_sam
+
+        d, s = plan["detector"], plan["sam"]
+        assert d.tokenizer is not None
+        canvas = (opts.detector_height, opts.detector_width)
+        det, det_check = export_detector(d.take(), d.path, tmp, d.tokenizer, canvas, opts.opset)
+        done({"export_checks": {"detector.onnx": det_check}})
+        enc_spec, dec_spec, sam_checks = export_sam(
+            s.take(), s.path, tmp, opts.sam_size, opts.opset
+        )
+        grounded = {
+            "detector": det,
+            "sam_encoder": enc_spec,
+            "sam_decoder": dec_spec,
+            "box_threshold": opts.box_threshold,
+            "mask_threshold": opts.mask_threshold,
+            "max_boxes": opts.max_boxes,
+        }
+        done({"grounded": grounded, "export_checks": sam_checks})
+    return manifest
+
+
+def export_model(
+    sources: Path | Sequence[Path],
+    opts: ModelExportParams,
+    run: ModelExportRun,
+    report: Report = SILENT,
+) -> Path:
+    """Write one bundle directory from the checkpoints `sources`; returns its path."""
+    check_params(opts)
+    paths = [Path(sources)] if isinstance(sources, str | Path) else [Path(p) for p in sources]
+    if not paths:
+        raise GoiError("SOURCE: give at least one checkpoint directory")
+    checked = [_source(p, opts) for p in paths]
+    plan = _plan(checked)
+    out = Path(run.out)
+    _check_out(out, checked, run.force)
+    for s in checked:  # a checkpoint that is not what its config says fails here, before exports
+        s.load()
+    make_dir(out.parent, "--out")
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as t:
+        tmp = Path(t)
+        parts = _export(plan, tmp, opts, report)
+        name = "+".join(s.path.resolve().name for s in checked)
+        manifest = {"schema": "goi.bundle", "schema_version": "1.1", "name": name, **parts}
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
+        bundle = load_bundle(tmp)  # what we wrote must pass our own reader
+        if bundle.has_res:
+            bundle.check_res()
+        del bundle
+        tmp.chmod(0o755)  # TemporaryDirectory makes it private
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+        tmp.mkdir()  # TemporaryDirectory removes its path on exit
+    return out

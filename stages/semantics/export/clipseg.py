@@ -1,0 +1,93 @@
+"""A CLIPSeg checkpoint (transformers CLIPSegForImageSegmentation) -> res.onnx, a single-model
+RES in the bundle's `res` slot.
+
+The graph: pixel_values [1, 3, S, S] (S fixed at export: the checkpoint's processor size, 352
+for CIDAS/clipseg-rd64-refined; the vision position embeddings are resampled to it inside the
+graph) and input_ids, attention_mask [1, L] (CLIP's tokenizer, L dynamic) -> probs [1, 1, S, S],
+the sigmoid of CLIPSeg's mask logits. goi resizes them to the image (bilinear) and keeps the
+pixels above the manifest's threshold.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from stages.semantics import res_processing as rp
+from stages.semantics.export.common import check, image_stats, onnx_export, write_tokenizer
+from stages.semantics.export.grounding_dino import check_image
+from stages.semantics.onnx_io import Tokens
+
+#: CLIPSeg's processor size when preprocessor_config.json does not say.
+DEFAULT_SIZE = 352
+
+
+def res_module(model: Any) -> Any:
+    import torch
+
+    class Res(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(
+            self, pixel_values: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor
+        ) -> torch.Tensor:
+            logits = self.model(
+                pixel_values=pixel_values, input_ids=input_ids, attention_mask=attention_mask
+            ).logits
+            b, _, h, w = pixel_values.shape
+            return logits.reshape(b, 1, h, w).sigmoid()
+
+    return Res().eval()
+
+
+def processor_size(cfg: dict) -> int:
+    size = cfg.get("size", DEFAULT_SIZE)
+    if isinstance(size, dict):
+        size = size.get("height") or size.get("shortest_edge") or DEFAULT_SIZE
+    return int(size)
+
+
+def export_clipseg(
+    model: Any, src: Path, tmp: Path, tokenizer: str, threshold: float, opset: int
+) -> dict:
+    """res.onnx and its tokenizer; returns the manifest's `res` entry and the check."""
+    import torch
+
+    max_length = int(model.config.text_config.max_position_embeddings)
+    tok = write_tokenizer(tokenizer, tmp, "res_tokenizer.json", max_length)
+    tokens = Tokens(tmp / "res_tokenizer.json", max_length, str(src))
+    # CIDAS's checkpoints list ImageNet's statistics in their preprocessor_config.json
+    stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
+    size = processor_size(stats["config"])
+    pixels = rp.square_inputs(check_image(size * 3 // 4, size), (size, size), *_ms(stats))
+    ids, att = tokens.encode("a red chair")
+    feed = {"pixel_values": pixels, "input_ids": ids, "attention_mask": att}
+    module = res_module(model)
+    args = tuple(torch.from_numpy(v) for v in feed.values())
+    with torch.no_grad():
+        want = [module(*args).numpy()]
+    path = tmp / "res.onnx"
+    axes = {"input_ids": {1: "length"}, "attention_mask": {1: "length"}}
+    onnx_export(module, args, path, (list(feed), ["probs"]), axes, opset)
+    found = check(path, feed, want)
+    spec = {
+        "file": "res.onnx",
+        "image_input": "pixel_values",
+        "input_ids": "input_ids",
+        "attention_mask": "attention_mask",
+        "output": "probs",
+        "size": [size, size],
+        "resize": "pil-bilinear",
+        "mean": stats["mean"],
+        "std": stats["std"],
+        "channel_order": "RGB",
+        "threshold": float(threshold),
+        "tokenizer": tok,
+    }
+    return {"res": spec, "export_checks": {"res.onnx": found}}
+
+
+def _ms(stats: dict) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    return tuple(stats["mean"]), tuple(stats["std"])

@@ -1,0 +1,223 @@
+"""What every export shares: reading a checkpoint, the ONNX export call, and the check of each
+ONNX file against torch before a bundle is written.
+
+The check runs the ONNX file once in onnxruntime on the inputs the torch outputs were computed
+from. Most graphs must agree within max(1e-3, 1e-4 x the largest output value). The detector is
+checked on what goi uses of it (`check_detections`): at the real size its raw logits differ from
+torch's by up to ~1e-2 from float32 summation order alone, as torch differs from itself with
+another thread count (docs/models.md).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stages.core.errors import GoiError, warn
+from stages.core.files import read_json
+
+TOLERANCE = 1e-4
+#: The absolute floor of the check (what goi's CLIP export always allowed).
+FLOOR = 1e-3
+
+
+def transformers() -> Any:
+    try:
+        import transformers as tf
+
+        tf.utils.logging.disable_progress_bar()
+        tf.utils.logging.set_verbosity_error()
+    except ImportError:
+        raise GoiError(
+            "goi export-model needs the optional dependency transformers: pip install 'goi[export]'"
+        ) from None
+    return tf
+
+
+def checkpoint_json(path: Path) -> Any:
+    return read_json(path, "missing (a Hugging Face checkpoint directory needs it)")
+
+
+def has_weights(src: Path) -> None:
+    """The checkpoint holds safetensors weights (goi never unpickles a .bin)."""
+    if not any((src / n).is_file() for n in ("model.safetensors", "model.safetensors.index.json")):
+        bins = (
+            "; it has pytorch_model.bin, which goi does not load"
+            if (src / "pytorch_model.bin").is_file()
+            else ""
+        )
+        raise GoiError(f"{src}: no model.safetensors{bins} (goi reads safetensors weights only)")
+
+
+def load_model(cls: Any, src: Path, what: str) -> Any:
+    """A transformers model from a local safetensors checkpoint, frozen, in eval mode.
+
+    A checkpoint that leaves more than half of the model's weights uninitialised is refused
+    (its config says one architecture, its weights are another's); fewer missing weights are
+    named in a warning."""
+    try:
+        model, info = cls.from_pretrained(
+            str(src), attn_implementation="eager", use_safetensors=True, output_loading_info=True
+        )
+    except (OSError, ValueError, RuntimeError, KeyError, TypeError) as e:
+        first = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+        raise GoiError(f"{src}: cannot load it as a {what} checkpoint ({first})") from None
+    missing = list(info.get("missing_keys", []))
+    total = len(model.state_dict())
+    if missing and len(missing) * 2 > total:
+        raise GoiError(
+            f"{src}: {len(missing)} of the {what}'s {total} weights are missing from "
+            "model.safetensors; it is another architecture's checkpoint"
+        )
+    if missing:
+        warn(f"{src}: {len(missing)} weights were not in the checkpoint, e.g. {missing[0]}")
+    model.eval()
+    model.requires_grad_(False)  # the ONNX tracer refuses trainable tensors as constants
+    return model
+
+
+def image_stats(src: Path, default_mean: Sequence[float], default_std: Sequence[float]) -> dict:
+    """mean, std (and the raw preprocessor config) from preprocessor_config.json, else the
+    defaults."""
+    pre = src / "preprocessor_config.json"
+    cfg = checkpoint_json(pre) if pre.is_file() else {}
+    mean = [float(v) for v in cfg.get("image_mean", default_mean)]
+    std = [float(v) for v in cfg.get("image_std", default_std)]
+    if len(mean) != 3 or len(std) != 3:
+        raise GoiError(f"{pre}: image_mean and image_std need 3 numbers each")
+    return {"mean": mean, "std": std, "config": cfg}
+
+
+def tokenizer_json(src: Path) -> str:
+    """The checkpoint's fast tokenizer as tokenizer.json text: its own file, else converted by
+    transformers from the slow tokenizer's files (vocab.txt, vocab.json + merges.txt, or a
+    SentencePiece model). transformers builds an empty vocabulary rather than fail without
+    them, so they must be there."""
+    path = src / "tokenizer.json"
+    if path.is_file():
+        from stages.core.files import read_text
+
+        return read_text(path, "tokenizer.json")
+    slow = [("vocab.txt",), ("vocab.json", "merges.txt"), ("spiece.model",)]
+    if not any(all((src / f).is_file() for f in files) for files in slow):
+        raise GoiError(
+            f"{path}: missing, and the checkpoint has no tokenizer vocabulary to build it from "
+            "(vocab.txt, vocab.json + merges.txt, or spiece.model)"
+        )
+    tf = transformers()
+    try:
+        tok = tf.AutoTokenizer.from_pretrained(str(src), use_fast=True)
+        return str(tok.backend_tokenizer.to_str())
+    except Exception as e:  # transformers raises many types here
+        raise GoiError(
+            f"{path}: missing, and transformers could not build it from the checkpoint's "
+            f"tokenizer files ({str(e).splitlines()[0][:160] if str(e) else type(e).__name__})"
+        ) from None
+
+
+def write_tokenizer(text: str, tmp: Path, name: str, max_length: int) -> dict:
+    """Write a tokenizer.json into the bundle; returns its manifest entry."""
+    (tmp / name).write_text(text)
+    return {"kind": "huggingface", "file": name, "max_length": int(max_length)}
+
+
+def onnx_export(model: Any, args: tuple, path: Path, names: tuple, axes: dict, opset: int) -> None:
+    """torch.onnx.export with TorchScript tracing (dynamo=False): the exporter every goi graph
+    was checked with."""
+    import torch
+
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            model,
+            args,
+            str(path),
+            input_names=list(names[0]),
+            output_names=list(names[1]),
+            dynamic_axes=axes,
+            opset_version=opset,
+            dynamo=False,
+        )
+
+
+def run_onnx(path: Path, feed: dict[str, np.ndarray]) -> list[np.ndarray]:
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3
+    opts.enable_cpu_mem_arena = False  # the big graphs: see stages.semantics.onnx_io.session
+    opts.enable_mem_pattern = False
+    sess = ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+    return list(sess.run(None, feed))
+
+
+def errors(got: Sequence[np.ndarray], want: Sequence[np.ndarray]) -> tuple[float, float, float]:
+    """Largest |got - want| (infinities must coincide), largest |want| and the relative L2
+    error ||got - want|| / ||want|| over the finite values, across all outputs."""
+    err, ref, num, den = 0.0, 0.0, 0.0, 0.0
+    for g, w in zip(got, want, strict=True):
+        g, w = np.asarray(g, np.float64), np.asarray(w, np.float64)
+        if g.shape != w.shape:
+            return float("inf"), 0.0, float("inf")
+        same_inf = np.isinf(g) & np.isinf(w) & (np.sign(g) == np.sign(w))
+        d = np.where(same_inf, 0.0, np.abs(g - w))
+        d = np.nan_to_num(d, nan=np.inf)
+        fin = np.isfinite(w)
+        if d.size:
+            err = max(err, float(d.max()))
+        if fin.any():
+            ref = max(ref, float(np.abs(w[fin]).max()))
+        num += float((d[fin] ** 2).sum()) if np.isfinite(d[fin]).all() else float("inf")
+        den += float((w[fin] ** 2).sum())
+    return err, ref, float(np.sqrt(num / den)) if den > 0 else float(np.sqrt(num))
+
+
+def check(path: Path, feed: dict[str, np.ndarray], want: Sequence[np.ndarray]) -> dict:
+    """Run the ONNX file; refuse it when it differs from torch by more than
+    max(1e-3, 1e-4 x the largest output value). Returns the measured errors."""
+    err, ref, rel = errors(run_onnx(path, feed), want)
+    limit = max(FLOOR, TOLERANCE * ref)
+    if not err <= limit:
+        raise GoiError(
+            f"{path.name}: ONNX output differs from torch by {err:.2e} (outputs up to "
+            f"{ref:.3g}, allowed {limit:.1e})"
+        )
+    return {"max_abs_error": err, "max_abs_output": ref, "relative_l2_error": rel}
+
+
+def check_detections(
+    path: Path, feed: dict[str, np.ndarray], want: Sequence[np.ndarray], top: int = 20
+) -> dict:
+    """The detector's check. Raw outputs within 1e-4 x their magnitude pass as they are (the
+    small test models). Otherwise what goi uses must agree: for each of torch's `top` best
+    queries, an ONNX query with the same box (within 1e-3 of the image size) and the same
+    score (within 1e-3)."""
+    got = run_onnx(path, feed)
+    err, ref, rel = errors(got, want)
+    found = {"max_abs_error": err, "max_abs_output": ref, "relative_l2_error": rel}
+    if err <= max(FLOOR, TOLERANCE * ref):
+        return found
+
+    def best(logits: np.ndarray) -> np.ndarray:
+        with np.errstate(over="ignore"):
+            return (1 / (1 + np.exp(-logits[0].astype(np.float64)))).max(-1)
+
+    s_want, s_got = best(want[0]), best(got[0])
+    b_want, b_got = np.asarray(want[1][0], np.float64), np.asarray(got[1][0], np.float64)
+    worst_box, worst_score = 0.0, 0.0
+    for q in np.argsort(-s_want)[:top]:
+        dist = np.abs(b_got - b_want[q]).max(1) + np.abs(s_got - s_want[q])
+        j = int(np.argmin(dist))
+        worst_box = max(worst_box, float(np.abs(b_got[j] - b_want[q]).max()))
+        worst_score = max(worst_score, float(abs(s_got[j] - s_want[q])))
+    found.update(top_boxes_max_error=worst_box, top_scores_max_error=worst_score)
+    if worst_box > FLOOR or worst_score > FLOOR:
+        raise GoiError(
+            f"{path.name}: the ONNX detector's best {top} boxes differ from torch's (boxes by "
+            f"{worst_box:.2e}, scores by {worst_score:.2e}; raw outputs by {err:.2e})"
+        )
+    return found

@@ -1,0 +1,140 @@
+"""A SAM checkpoint (transformers SamModel) -> sam_encoder.onnx + sam_decoder.onnx, the split
+SAM's own release uses.
+
+sam_encoder.onnx: pixel_values [1, 3, S, S] -> image_embeddings [1, 256, S/16, S/16], once per
+image. sam_decoder.onnx: image_embeddings and input_boxes [1, B, 4] (x0, y0, x1, y1 in the
+resized S frame; B dynamic) -> pred_masks [1, B, 1, S/4, S/4] mask logits, with
+multimask_output=False (one mask per box, SAM's advice for box prompts). The prompt encoder is
+inside the decoder graph; upscaling the masks to the image is numpy (res_processing), so the
+graph does not depend on the image size. Points and mask prompts are not exported.
+
+At an input S other than the checkpoint's own (1024), the absolute position embeddings are
+resampled (bicubic) to the S/16 grid; the relative position tables of the global-attention
+blocks are resampled by the model itself (linear, as in SAM's code). SAM was not trained at
+other sizes: this trades mask quality, unmeasured here, for speed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stages.core.errors import GoiError
+from stages.semantics import res_processing as rp
+from stages.semantics.export.common import check, image_stats, onnx_export
+from stages.semantics.export.grounding_dino import check_image
+
+
+def resize_input(model: Any, size: int) -> None:
+    """Make a SamModel take S x S images (S a multiple of the patch size), in place."""
+    import torch
+    import torch.nn.functional as F
+
+    vcfg = model.config.vision_config
+    patch = int(vcfg.patch_size)
+    if size % patch:
+        raise GoiError(f"--sam-size: {size} is not a multiple of SAM's patch size {patch}")
+    grid = size // patch
+    enc = model.vision_encoder
+    if enc.pos_embed is not None:
+        pos = enc.pos_embed.detach().permute(0, 3, 1, 2)  # [1, C, g, g]
+        pos = F.interpolate(pos, size=(grid, grid), mode="bicubic", align_corners=False)
+        enc.pos_embed = torch.nn.Parameter(pos.permute(0, 2, 3, 1).contiguous(), False)
+    enc.image_size = size
+    enc.patch_embed.image_size = (size, size)
+    vcfg.image_size = size
+    pcfg = model.config.prompt_encoder_config
+    pcfg.image_size = size
+    pcfg.image_embedding_size = grid
+    model.prompt_encoder.input_image_size = size
+    model.prompt_encoder.image_embedding_size = (grid, grid)
+
+
+def modules(model: Any) -> tuple[Any, Any]:
+    import torch
+
+    class Encoder(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(self, pixel_values: torch.Tensor) -> torch.Tensor:
+            out: torch.Tensor = self.model.get_image_embeddings(pixel_values)
+            return out
+
+    class Decoder(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(
+            self, image_embeddings: torch.Tensor, input_boxes: torch.Tensor
+        ) -> tuple[torch.Tensor, torch.Tensor]:
+            out = self.model(
+                image_embeddings=image_embeddings, input_boxes=input_boxes, multimask_output=False
+            )
+            return out.pred_masks, out.iou_scores
+
+    return Encoder().eval(), Decoder().eval()
+
+
+def export_sam(model: Any, src: Path, tmp: Path, size: int, opset: int) -> tuple[dict, dict, dict]:
+    """sam_encoder.onnx and sam_decoder.onnx; returns their manifest entries and the checks."""
+    import torch
+
+    native = int(model.config.vision_config.image_size)
+    size = size or native
+    if size != native:
+        resize_input(model, size)
+    stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
+    encoder, decoder = modules(model)
+    rgb = check_image(size * 3 // 4, size, seed=1)
+    pixels = rp.sam_inputs(rgb, size, stats["mean"], stats["std"])
+    with torch.no_grad():
+        emb = encoder(torch.from_numpy(pixels))
+    enc_path = tmp / "sam_encoder.onnx"
+    onnx_export(
+        encoder,
+        (torch.from_numpy(pixels),),
+        enc_path,
+        (["pixel_values"], ["image_embeddings"]),
+        {},
+        opset,
+    )
+    checks = {"sam_encoder.onnx": check(enc_path, {"pixel_values": pixels}, [emb.numpy()])}
+    boxes = np.asarray([[10, 20, 300, 240], [200, 100, 620, 470]], np.float32) * (size / 1024)
+    feeds = [rp.sam_boxes(boxes[:n], rgb.shape[:2], size) for n in (2, 1)]
+    with torch.no_grad():
+        wants = [[t.numpy() for t in decoder(emb, torch.from_numpy(b))] for b in feeds]
+    dec_path = tmp / "sam_decoder.onnx"
+    axes = {"input_boxes": {1: "boxes"}, "pred_masks": {1: "boxes"}, "iou_scores": {1: "boxes"}}
+    onnx_export(
+        decoder,
+        (emb, torch.from_numpy(feeds[0])),
+        dec_path,
+        (["image_embeddings", "input_boxes"], ["pred_masks", "iou_scores"]),
+        axes,
+        opset,
+    )
+    found = [
+        check(dec_path, {"image_embeddings": emb.numpy(), "input_boxes": b}, want)
+        for b, want in zip(feeds, wants, strict=True)
+    ]
+    checks["sam_decoder.onnx"] = {k: max(f[k] for f in found) for k in found[0]}
+    enc_spec = {
+        "file": "sam_encoder.onnx",
+        "input": "pixel_values",
+        "output": "image_embeddings",
+        "size": [size, size],
+        "mean": stats["mean"],
+        "std": stats["std"],
+    }
+    dec_spec = {
+        "file": "sam_decoder.onnx",
+        "image_embeddings": "image_embeddings",
+        "boxes": "input_boxes",
+        "masks": "pred_masks",
+    }
+    return enc_spec, dec_spec, checks

@@ -1,0 +1,111 @@
+"""onnxruntime sessions, tensor checks and tokenizers for the models of a bundle.
+
+Every model file is opened here: a path may not leave its bundle directory, a file that
+onnxruntime cannot load is a clean error, and each tensor a manifest names is checked (name,
+rank, fixed sizes) before the model runs, with a message naming the file and the tensor.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stages.core.errors import GoiError, warn
+from stages.core.files import regular_file
+
+
+def providers() -> list[str]:
+    import onnxruntime as ort
+
+    have = ort.get_available_providers()
+    return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in have]
+
+
+def inside(root: Path, rel: str, where: str) -> Path:
+    """A file named by a manifest: inside the bundle directory, and present."""
+    p = (root / rel).resolve()
+    if not p.is_relative_to(root.resolve()):
+        raise GoiError(f"{where}: path {rel!r} points outside the bundle directory")
+    if not p.is_file():
+        raise GoiError(f"{where}: {rel} is missing from the bundle")
+    return p
+
+
+def session(path: Path, low_memory: bool = False) -> Any:
+    """An onnxruntime session. `low_memory` turns off the CPU memory arena and the
+    memory-pattern planner: the large RES graphs (SAM's ViT encoder, Grounding DINO) otherwise
+    keep several GB of peak activations reserved (SAM ViT-B's encoder passed 7 GB with them, 4 GB
+    without), at a cost of a few percent in speed."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3
+    if low_memory:
+        opts.enable_cpu_mem_arena = False
+        opts.enable_mem_pattern = False
+    try:
+        return ort.InferenceSession(str(path), sess_options=opts, providers=providers())
+    except Exception as e:  # onnxruntime raises its own exception types for bad models
+        raise GoiError(
+            f"{path}: not a loadable ONNX model ({str(e).splitlines()[0][:200]})"
+        ) from None
+
+
+def check_io(
+    sess: Any, path: Path, kind: str, name: str, rank: int, fixed: dict[int, int] | None = None
+) -> list[int | str]:
+    """The named input or output exists with the expected rank and fixed dimensions; returns
+    its shape (ints for fixed sizes, names for dynamic ones)."""
+    items = sess.get_inputs() if kind == "input" else sess.get_outputs()
+    found = {i.name: i for i in items}
+    if name not in found:
+        raise GoiError(f"{path}: no {kind} named '{name}' (it has: {', '.join(found)})")
+    shape = list(found[name].shape)
+    if len(shape) != rank:
+        raise GoiError(f"{path}: {kind} '{name}' has rank {len(shape)} {shape}, expected {rank}")
+    for axis, size in (fixed or {}).items():
+        if isinstance(shape[axis], int) and shape[axis] != size:
+            raise GoiError(
+                f"{path}: {kind} '{name}' has size {shape[axis]} on axis {axis}, expected {size}"
+            )
+    return shape
+
+
+def check_inputs_named(sess: Any, path: Path, named: list[str]) -> None:
+    """The graph needs no input beyond those the manifest names (goi could not feed it)."""
+    extra = [i.name for i in sess.get_inputs() if i.name not in named]
+    if extra:
+        raise GoiError(f"{path}: input '{extra[0]}' is not named in the manifest")
+
+
+class Tokens:
+    """A Hugging Face tokenizer.json with the model's length limit: longer prompts are cut
+    to it, with a warning."""
+
+    def __init__(self, path: Path, max_length: int, where: str):
+        from tokenizers import Tokenizer
+
+        regular_file(path, "tokenizer.json")
+        try:
+            self.tok = Tokenizer.from_file(str(path))
+        except Exception as e:  # tokenizers raises its own exception type
+            raise GoiError(f"{path}: not a tokenizer.json ({str(e)[:200]})") from None
+        if max_length < 2:
+            raise GoiError(f"{where}: tokenizer max_length {max_length} is below 2")
+        self.tok.no_padding()
+        self.tok.enable_truncation(max_length)
+        self.max_length = max_length
+        self.path = path
+
+    def encode(self, text: str) -> tuple[np.ndarray, np.ndarray]:
+        """-> input_ids and attention_mask, both [1, L] int64."""
+        enc = self.tok.encode(text)
+        if enc.overflowing:
+            warn(
+                f"the prompt {text[:60]!r} is longer than the model's {self.max_length} tokens "
+                f"({self.path.name}); it was cut to them"
+            )
+        ids = np.asarray([enc.ids], np.int64)
+        return ids, np.asarray([enc.attention_mask], np.int64)
