@@ -134,16 +134,20 @@ class _CodebookLosses(torch.autograd.Function):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         b = v_gt.shape[0]
         sim = v_gt @ t_unit.T  # [B, N] cosines, then dL/dsim in place
-        ent, s_max, s_e2e = (np.empty(b, np.float64) for _ in range(3))
-        d = np.empty(b, np.int64)
-        codebook_rows(sim.numpy(), e_idx.numpy(), tau, *weights, ent, s_max, s_e2e, d)
+        s_max, d = sim.max(dim=1)
+        p = torch.exp((sim - s_max[:, None]).mul_(tau))  # [B, N] softmax(tau sim), unnormalised
+        s_e2e = sim.gather(1, e_idx[:, None])[:, 0]
+        ent = np.empty(b, np.float64)
+        codebook_rows(sim.numpy(), p.numpy(), e_idx.numpy(), d.numpy(), tau, *weights, ent)
+        terms = torch.tensor(
+            [ent.mean(), 1 - float(s_max.double().mean()), 1 - float(s_e2e.double().mean())],
+            dtype=sim.dtype,
+        )
+        total = (torch.tensor(weights, dtype=sim.dtype) * terms).sum()
+        ctx.mark_non_differentiable(terms, d)
         ctx.save_for_backward(sim, v_gt)
         ctx.set_materialize_grads(False)
-        terms = torch.tensor([ent.mean(), 1 - s_max.mean(), 1 - s_e2e.mean()], dtype=sim.dtype)
-        total = (torch.tensor(weights, dtype=sim.dtype) * terms).sum()
-        d_t = torch.from_numpy(d)
-        ctx.mark_non_differentiable(terms, d_t)
-        return total, terms, d_t
+        return total, terms, d
 
     @staticmethod
     def backward(ctx, g_total, _g_terms, _g_d):  # type: ignore[override]  # noqa: ANN001, ANN205
@@ -163,7 +167,7 @@ class _JointLoss(torch.autograd.Function):
     ) -> torch.Tensor:
         b, n = e.shape
         scale = 50.0 / (b * n)  # the mean over B N
-        grad = e.detach().clone()
+        grad = torch.softmax(e.detach(), dim=1)  # [B, N], then dL/de in place
         sq = np.empty(b, np.float64)
         joint_rows(grad.numpy(), d.numpy(), scale, sq)
         ctx.save_for_backward(grad)

@@ -16,7 +16,6 @@ from typing import Annotated, Any
 import numpy as np
 import torch
 
-from stages.core.arrays import normalise
 from stages.core.artifacts import check_writable, input_digest
 from stages.core.errors import GoiError
 from stages.core.files import refuse_inputs
@@ -27,7 +26,7 @@ from stages.semantics.blend_cache import cache_nbytes, cache_target, ensure_cach
 from stages.semantics.checkpoint import check_checkpoint, load_checkpoint, save_checkpoint
 from stages.semantics.codebook import load_codebook
 from stages.semantics.feature_renderer import FeatureRenderer
-from stages.semantics.features import feature_grid, feature_views, load_features
+from stages.semantics.features import cell_norms, feature_grid, feature_views, load_features
 from stages.semantics.field import save_field
 from stages.semantics.field_model import PARAMETERS, FieldModel, FieldParams, field_losses
 from stages.semantics.memory import memory_budget, working_set
@@ -154,6 +153,7 @@ def fit_field(
     else:
         fr = FeatureRenderer.from_file(cache_path, views)
     targets = {v: m.reshape(-1, fm.dim) for v, m in fm.maps.items()}  # [cells, D] float16
+    norms = {v: cell_norms(m) for v, m in targets.items()}  # [cells] float32
 
     torch.manual_seed(p.seed)
     model = FieldModel(g.count, p.sem_dim, codebook, p.no_tfcc)
@@ -184,7 +184,7 @@ def fit_field(
             fr = FeatureRenderer.from_file(
                 cache_path, [views[i] for i in sorted(pick)], order=order, check=False
             )
-        rows, tgt = [], []
+        rows, tgt, tgt_norm = [], [], []
         for vi in sorted(pick):
             v = views[vi]
             n_cells = sizes[v][0] * sizes[v][1]
@@ -194,8 +194,10 @@ def fit_field(
                 cells = np.arange(n_cells)
             rows.append(fr.rows(v, cells))
             tgt.append(targets[v][cells])
+            tgt_norm.append(norms[v][cells])
         f_hat = fr.render(model.features, np.concatenate(rows))  # [B, S]
-        v_gt = torch.from_numpy(normalise(np.concatenate(tgt).astype(np.float32)))  # [B, D]
+        v_gt = torch.from_numpy(np.concatenate(tgt)).float()  # [B, D] unit, as load_features
+        v_gt.div_(torch.from_numpy(np.concatenate(tgt_norm))[:, None])  # would give them
         loss, parts = field_losses(model, f_hat, v_gt, p.tau(it), p)
         if not np.isfinite(parts[0]):
             raise GoiError(

@@ -1,11 +1,11 @@
-"""Row-wise kernels of the field's codebook losses: every quantity the losses need from one row
-of a [B, N] matrix, and that row's gradient, in one pass while the row sits in cache.
+"""Row-wise kernels of the field's codebook losses: every sum the losses need from one row of a
+[B, N] matrix, and that row's gradient, in one pass while the row sits in cache.
 
-Written out with torch ops the same work is a dozen full passes over [B, N] (max, argmax,
-logsumexp, softmax, products, sums, the gradient, two indexed updates); a row of N = 300
-floats fits in L1, so fusing them leaves the two matrix products as the only heavy part.
-Rows are independent and each is summed in a fixed order, so the result does not depend on
-the number of threads.
+Written out with torch ops the same work is a dozen full passes over [B, N] (logsumexp,
+softmax, products, sums, the gradient, two indexed updates); a row of N = 300 floats fits in
+L1, so fusing them leaves the matrix products and one vectorised exp as the heavy part. The
+exponentials come from torch (vectorised; numba's math.exp is not without SVML). Rows are
+independent, so the result does not depend on the number of threads.
 """
 
 from __future__ import annotations
@@ -13,70 +13,51 @@ from __future__ import annotations
 import math
 
 import numba
-import numpy as np
-
-#: Rows per task of the parallel loop: each task allocates its exp buffer once.
-_CHUNK = 256
 
 
-@numba.njit(parallel=True, cache=True)
-def codebook_rows(sim, e_idx, tau, w_ent, w_max, w_e2e, ent, s_max, s_e2e, d):
-    """For each row of cosines sim [B, N] (overwritten with dL/dsim of the row's share of
-    w_ent L_ent + w_max L_max + w_e2e L_e2e, without the 1/B of the mean):
-    ent [B] the entropy of softmax(tau sim), s_max [B] and d [B] the max and argmax,
-    s_e2e [B] the cosine with the entry e_idx [B] the decoder picked."""
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def codebook_rows(sim, p, e_idx, d, tau, w_ent, w_max, w_e2e, ent):
+    """For each row: sim [B, N] cosines, p [B, N] = exp(tau (sim - max)), d [B] the argmax of
+    sim and e_idx [B] the entry the decoder picked. Writes ent [B], the entropy of
+    softmax(tau sim), and overwrites sim with dL/dsim of the row's share of
+    w_ent L_ent + w_max L_max + w_e2e L_e2e (without the 1/B of the mean):
+    dH/dsim = -tau p (z - E_p[z]) for z = tau sim, and -1 at d and at e_idx."""
     b, n = sim.shape
-    for c in numba.prange((b + _CHUNK - 1) // _CHUNK):
-        p = np.empty(n, np.float64)
-        for i in range(c * _CHUNK, min(b, (c + 1) * _CHUNK)):
-            row = sim[i]
-            best, arg = row[0], 0
-            for j in range(1, n):
-                if row[j] > best:
-                    best, arg = row[j], j
-            s_max[i], d[i] = best, arg
-            s_e2e[i] = row[e_idx[i]]
-            total = 0.0
-            for j in range(n):
-                p[j] = math.exp(tau * (row[j] - best))
-                total += p[j]
-            ez = 0.0  # E_p[z] with z = tau sim
-            for j in range(n):
-                p[j] /= total
-                ez += p[j] * tau * row[j]
-            ent[i] = tau * best + math.log(total) - ez  # logsumexp(z) - E_p[z]
-            # dH/dsim = tau dH/dz = -tau p (z - E_p[z])
-            for j in range(n):
-                row[j] = -w_ent * tau * p[j] * (tau * row[j] - ez)
-            row[arg] -= w_max
-            row[e_idx[i]] -= w_e2e
+    for i in numba.prange(b):
+        row, pr = sim[i], p[i]
+        total = 0.0
+        ez = 0.0
+        for j in range(n):
+            total += pr[j]
+            ez += pr[j] * row[j]
+        ez *= tau / total  # E_p[z]
+        ent[i] = tau * row[d[i]] + math.log(total) - ez  # logsumexp(z) - E_p[z]
+        scale = -w_ent * tau / total
+        for j in range(n):
+            row[j] = scale * pr[j] * (tau * row[j] - ez)
+        row[d[i]] -= w_max
+        row[e_idx[i]] -= w_e2e
 
 
-@numba.njit(parallel=True, cache=True)
-def joint_rows(e, d, scale, sq):
-    """For each row of decoder logits e [B, N] (overwritten with d/de of
-    scale * |softmax(e) - onehot(d)|^2): sq [B] that squared distance."""
-    b, n = e.shape
-    for c in numba.prange((b + _CHUNK - 1) // _CHUNK):
-        q = np.empty(n, np.float64)
-        for i in range(c * _CHUNK, min(b, (c + 1) * _CHUNK)):
-            row = e[i]
-            best = row[0]
-            for j in range(1, n):
-                best = max(best, row[j])
-            total = 0.0
-            for j in range(n):
-                q[j] = math.exp(row[j] - best)
-                total += q[j]
-            # r = q - onehot(d); dL/dq = 2 scale r; dL/de = q (dL/dq - sum(q dL/dq))
-            dist = 0.0
-            qg = 0.0
-            for j in range(n):
-                q[j] /= total
-                r = q[j] - 1.0 if j == d[i] else q[j]
-                dist += r * r
-                qg += q[j] * 2.0 * scale * r
-            sq[i] = dist
-            for j in range(n):
-                r = q[j] - 1.0 if j == d[i] else q[j]
-                row[j] = q[j] * (2.0 * scale * r - qg)
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def joint_rows(q, d, scale, sq):
+    """For each row of q = softmax(e) [B, N] and target entries d [B]: sq [B] the squared
+    distance |q - onehot(d)|^2, and q overwritten with d/de of scale * that distance:
+    with r = q - onehot(d) and g = 2 scale r = dL/dq, dL/de = q (g - sum(q g))."""
+    b, n = q.shape
+    for i in numba.prange(b):
+        row = q[i]
+        t = d[i]
+        dist = 0.0
+        qg = 0.0
+        for j in range(n):
+            dist += row[j] * row[j]
+            qg += row[j] * row[j]
+        # the target's entry: r = q - 1 there
+        dist += 1.0 - 2.0 * row[t]
+        qg = 2.0 * scale * (qg - row[t])
+        sq[i] = dist
+        q_t = row[t]
+        for j in range(n):
+            row[j] = row[j] * (2.0 * scale * row[j] - qg)
+        row[t] = q_t * (2.0 * scale * (q_t - 1.0) - qg)
