@@ -38,6 +38,18 @@ def median_s(fn: Callable[[], object], repeat: int, warmup: int = 1) -> float:
     return statistics.median(times)
 
 
+def median_cpu_s(fn: Callable[[], object], repeat: int, warmup: int = 1) -> float:
+    """Like `median_s` in process CPU seconds (all threads together)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        t = time.process_time()
+        fn()
+        times.append(time.process_time() - t)
+    return statistics.median(times)
+
+
 def synthetic_scene(n: int, tmp: Path, seed: int = 0):
     path = tmp / f"room_{n}.ply"
     if not path.exists():
@@ -212,6 +224,47 @@ def suite_field(repeat: int, tmp: Path) -> dict[str, float]:
     return out
 
 
+def suite_losses(repeat: int, tmp: Path) -> dict[str, float]:
+    """One step's losses, forward and backward, at fit-field's size (4 x 4096 targets, 300
+    entries, 384-d, 10-d features): the fused `field_losses` against the paper's formulation
+    under autograd (`reference_field_losses`, the baseline) in the same run. Wall medians,
+    and CPU-time medians (on a shared machine CPU time divided by the threads is the fairer
+    figure)."""
+    import torch
+    import torch.nn.functional as F
+
+    from stages.semantics.field_model import (
+        FieldModel,
+        FieldParams,
+        field_losses,
+        reference_field_losses,
+    )
+
+    torch.manual_seed(0)
+    b, n, d = 16384, 300, 384
+    model = FieldModel(b, 10, F.normalize(torch.randn(n, d), dim=1).numpy(), direct=False)
+    with torch.no_grad():
+        model.features.normal_()
+    v_gt = F.normalize(torch.randn(b, d), dim=1)
+    p = FieldParams()
+    out: dict[str, float] = {}
+    for name, fn in (("reference", reference_field_losses), ("fused", field_losses)):
+
+        def step(fn=fn) -> None:  # noqa: ANN001
+            model.zero_grad()
+            fn(model, model.features * 1.0, v_gt, 2.0, p)[0].backward()
+
+        out[f"loss_step_ms_{name}"] = 1000 * median_s(step, repeat)
+        out[f"loss_step_cpu_ms_{name}"] = 1000 * median_cpu_s(step, repeat)
+    out["loss_step_fused_over_reference"] = (
+        out["loss_step_ms_fused"] / out["loss_step_ms_reference"]
+    )
+    out["loss_step_cpu_fused_over_reference"] = (
+        out["loss_step_cpu_ms_fused"] / out["loss_step_cpu_ms_reference"]
+    )
+    return out
+
+
 def suite_query(repeat: int, tmp: Path) -> dict[str, float]:
     """A prompt on the 300k room at 640x480. The field is random, not fitted: a query's cost
     does not depend on the values (one render, a decoder product, a lookup), and fitting a
@@ -288,6 +341,7 @@ SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "raster": suite_raster,
     "field": suite_field,
     "query": suite_query,
+    "losses": suite_losses,
     "scale": suite_scale,
     "models": suite_models,
 }
