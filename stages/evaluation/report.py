@@ -69,12 +69,17 @@ def rel(path: Path, page: Path) -> str:
     return esc(Path(os.path.relpath(path, page.parent)).as_posix())
 
 
+def page_files_dir(page: Path) -> Path:
+    """The directory of a page's images: <page stem>_files beside it."""
+    return Path(page).with_name(Path(page).stem + "_files")
+
+
 def eval_page(
     path: Path, report: dict, prompts: list, figures: dict, tfcc_views: dict, scene: Any
 ) -> None:
     """The eval report: metrics per variant and prompt, timings, and every test view's
     prediction (red) against the ground truth (green outline), one row per variant."""
-    files = path.with_name(path.stem + "_files")
+    files = page_files_dir(path)
     make_dir(files, "--html")
     variants = list(report["variants"])
     body = [

@@ -162,7 +162,8 @@ def load_scene(
                 f"{d}: no cameras.json, transforms*.json or sparse/ COLMAP model; pass --cameras"
             )
     names = [c.name for c in cams]
-    if d is not None and (d / "split.json").is_file():
+    # a split.json that is there is read (a FIFO or a directory is refused, never skipped)
+    if d is not None and ((d / "split.json").exists() or (d / "split.json").is_symlink()):
         split = _read_split(d / "split.json", set(names))
         train, test = split["train"], split.get("test", [])
     if train is None:
