@@ -95,7 +95,8 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
     scene = load_scene_from(kw)
     p, run = build(MaskParams, kw), build(MaskRun, kw)
     f = load_field_for(field, scene.ply_digest())
-    plane = load_plane(hyperplanes, prompt, field, *f.codebook.shape)
+    n_entries, dim = f.codebook.shape
+    plane = load_plane(hyperplanes, prompt, field, n_entries, dim)
     if camera_file is not None:
         cams = load_cameras(camera_file)
         chosen = pick_cameras({c.name: c for c in cams}, cams, run.views)
@@ -140,7 +141,8 @@ def select_cmd(
     check_writable(out, force, "--out")
     refuse_inputs({"--out": out}, [field, hyperplanes, scene.ply_path, *scene.camera_files])
     f = load_field_for(field, scene.ply_digest())
-    plane = plane_for(load_plane(hyperplanes, prompt, field, *f.codebook.shape), mode, f, THRESHOLD)
+    n_entries, dim = f.codebook.shape
+    plane = plane_for(load_plane(hyperplanes, prompt, field, n_entries, dim), mode, f, THRESHOLD)
     sel = select(f, plane)
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field)}
     write_selection(out, sel, plane, mode, scene.ply_digest(), inputs, force)

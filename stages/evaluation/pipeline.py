@@ -220,7 +220,7 @@ WORK_FILES = (
     "field_direct.h5",
     "hyperplanes.h5",
 )
-WORK_MARKER = ".goi-eval-work"
+WORK_MARKER = "goi-eval-work.txt"  # not ".goi-*": those are goi's temporary files
 
 
 def _check_work(work: Path) -> None:

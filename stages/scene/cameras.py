@@ -126,11 +126,9 @@ def pixels(obj: dict, key: str, where: str) -> int:
 
 
 def view_name_ok(name: str) -> bool:
-    """A view name goi can key artifacts by and look an image up with: non-empty, printable,
-    and no path climbing out of the images directory."""
-    return (
-        bool(name.strip()) and name.isprintable() and ".." not in name.replace("\\", "/").split("/")
-    )
+    """A view name goi can key artifacts by: non-empty and printable (no NUL or control
+    character). Names become file names only through `view_file_name`, never as they are."""
+    return bool(name.strip()) and name.isprintable()
 
 
 def matrix(obj: dict, key: str, shape: tuple[int, ...], where: str) -> np.ndarray:

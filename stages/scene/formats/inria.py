@@ -20,10 +20,10 @@ def read_inria(path: Path, data: object) -> list[Camera]:
         if not isinstance(c, dict):
             raise GoiError(f"{where}: not an object")
         name = c.get("img_name")
-        if not isinstance(name, str) or not (view_name_ok(name) and view_name_ok(stem(name))):
+        if not isinstance(name, str) or not view_name_ok(stem(name)):
             raise GoiError(
                 f"{where}: field 'img_name' must be an image file name (a non-empty string "
-                f"without NUL or '..'); found {str(name)[:60]!r}"
+                f"without control characters); found {str(name)[:60]!r}"
             )
         c2w = matrix(c, "rotation", (3, 3), where)  # camera-to-world, OpenCV axes
         pos = matrix(c, "position", (3,), where)
