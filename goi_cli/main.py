@@ -14,6 +14,7 @@ from goi_cli import commands, eval_commands, query_commands
 from stages import __version__
 from stages.core.artifacts import set_command
 from stages.core.errors import GoiError
+from stages.core.files import guarded_inputs
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -49,7 +50,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     old_show = warnings.showwarning
     warnings.showwarning = _show_warning
     try:
-        rc = cli.main(args=args, prog_name="goi", standalone_mode=False)
+        with guarded_inputs():  # no output of this command may replace one of its inputs
+            rc = cli.main(args=args, prog_name="goi", standalone_mode=False)
         code = rc if isinstance(rc, int) else 0
     except click.exceptions.Abort:
         print("goi: interrupted", file=sys.stderr)

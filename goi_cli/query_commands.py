@@ -48,6 +48,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     When the bundle's RES model makes the masks, the ones used are written beside the artifact
     (<out's directory>/<prompt>/res/<view>.png).
     """
+    from stages.core.files import refuse_inputs
     from stages.query.hyperplanes import fit_hyperplane, res_masks_dir, wrote_res_masks
     from stages.query.prompts import check_prompt, text_embedding
     from stages.query.res import res_source
@@ -58,6 +59,8 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     src = build(PromptSources, kw)
     p, run = build(HyperplaneParams, kw), build(HyperplaneRun, kw)
     prompt = check_prompt(prompt)
+    inputs = [field, src.text_embeddings, src.bundle, src.res_masks, scene.ply_path]
+    refuse_inputs({"--out": run.out}, [*inputs, *scene.camera_files])
     f = load_field_for(field, scene.ply_digest())
     text, text_source = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
@@ -90,7 +93,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **kw) -> None:  # noqa: ANN001
     """Render the prompt's binary mask (PNG) and an overlay on the rendered RGB at any views."""
     from stages.query.hyperplanes import load_plane
-    from stages.query.masks import default_cameras, pick_cameras, render_masks
+    from stages.query.masks import check_mask_outputs, default_cameras, pick_cameras, render_masks
     from stages.scene.formats import load_cameras
     from stages.semantics.decode import SemanticRenderer
     from stages.semantics.field import load_field_for
@@ -98,12 +101,15 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
     scene = load_scene_from(kw)
     p, run = build(MaskParams, kw), build(MaskRun, kw)
     f = load_field_for(field, scene.ply_digest())
-    plane = load_plane(hyperplanes, prompt, field, f.codebook.shape[0])
+    n_entries, dim = f.codebook.shape
+    plane = load_plane(hyperplanes, prompt, field, n_entries, dim)
     if camera_file is not None:
         cams = load_cameras(camera_file)
         chosen = pick_cameras({c.name: c for c in cams}, cams, run.views)
     else:
         chosen = default_cameras(scene, run.views)
+    inputs = [field, hyperplanes, camera_file, scene.ply_path, *scene.camera_files]
+    check_mask_outputs(run.out, chosen, not run.no_overlay, run.force, inputs)
     renderer = SemanticRenderer(scene.gaussians, f)
     with staged_outputs():  # every mask and overlay, or none
         written = render_masks(renderer, plane, chosen, p, run, TERMINAL)
@@ -138,12 +144,11 @@ def select_cmd(
     from stages.semantics.field import load_field_for
 
     scene = load_scene_from(kw)
-    check_writable(out, force)
-    refuse_inputs({"--out": out}, [field, hyperplanes, scene.ply_path])
+    check_writable(out, force, "--out")
+    refuse_inputs({"--out": out}, [field, hyperplanes, scene.ply_path, *scene.camera_files])
     f = load_field_for(field, scene.ply_digest())
-    plane = plane_for(
-        load_plane(hyperplanes, prompt, field, f.codebook.shape[0]), mode, f, THRESHOLD
-    )
+    n_entries, dim = f.codebook.shape
+    plane = plane_for(load_plane(hyperplanes, prompt, field, n_entries, dim), mode, f, THRESHOLD)
     sel = select(f, plane)
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field)}
     write_selection(out, sel, plane, mode, scene.ply_digest(), inputs, force)
@@ -160,12 +165,14 @@ def export_ply_cmd(selection: Path, field: Path | None, **kw) -> None:
     """Write the selection as an INRIA-layout PLY: only the Gaussians of interest (default),
     the scene without them (--invert), with them recoloured (--highlight) or moved
     (--translate). Readable by splat viewers and by goi."""
+    from stages.core.files import refuse_inputs
     from stages.query.export_ply import export_ply
     from stages.query.selection import load_selection
     from stages.semantics.field import load_field_for
 
     scene = load_scene_from(kw)
     p, run = build(PlyEditParams, kw), build(PlyExportRun, kw)
+    refuse_inputs({"--out": run.out}, [selection, field, scene.ply_path, *scene.camera_files])
     f = load_field_for(field, scene.ply_digest()) if field is not None else None
     sel = load_selection(selection)
     out, n = export_ply(scene.gaussians, sel, scene.ply_digest(), p, run, f)

@@ -19,3 +19,15 @@ def require_finite(x: np.ndarray, where: str) -> np.ndarray:
     if bad.any():
         raise GoiError(f"{where} holds {int(bad.sum())} NaN/inf values")
     return x
+
+
+def require_nonzero_rows(x: np.ndarray, where: str) -> np.ndarray:
+    """`x` [N, D] when no row is all zeros (a direction is needed: a zero codebook entry has
+    a cosine of 0 with everything and would silently never be chosen), else a GoiError."""
+    zero = ~np.any(x != 0, axis=1)
+    if zero.any():
+        raise GoiError(
+            f"{where}: {int(zero.sum())} of {len(x)} rows are all zeros (first: row "
+            f"{int(np.argmax(zero))}); each entry must be a direction"
+        )
+    return x

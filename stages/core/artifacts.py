@@ -22,7 +22,7 @@ import numpy as np
 
 from stages import __version__
 from stages.core.errors import GoiError
-from stages.core.files import check_output_name, file_in_the_way
+from stages.core.files import check_output_name, file_in_the_way, refuse_if_input, with_option
 from stages.core.staging import current_stage
 
 #: argv of the running command, recorded in every artifact (the CLI sets it; tests may not).
@@ -64,22 +64,26 @@ def provenance(inputs: dict[str, str]) -> dict[str, str]:
     }
 
 
-def check_writable(path: Path, force: bool) -> None:
-    """Refuse to clobber an existing output and fail early on an unwritable directory."""
+def check_writable(path: Path, force: bool, option: str | None = None) -> None:
+    """Refuse to clobber an existing output or one of the command's inputs, and fail early on
+    an unwritable directory. `option` (e.g. '--cache') starts the message when given."""
     path = Path(path)
-    check_output_name(path)
+    check_output_name(path, option)
     if path.is_dir():
-        raise GoiError(f"{path}: is a directory; give the path of a file to write")
+        raise GoiError(
+            with_option(option, f"{path}: is a directory; give the path of a file to write")
+        )
+    refuse_if_input(path, option)
     if (path.exists() or path.is_symlink()) and not force:
-        raise GoiError(f"{path}: already exists; pass --force to overwrite it")
+        raise GoiError(with_option(option, f"{path}: already exists; pass --force to overwrite it"))
     parent = path.parent if str(path.parent) else Path(".")
     blocker = file_in_the_way(parent)
     if blocker is not None:
-        raise GoiError(f"{path}: {blocker} is a file, not a directory")
+        raise GoiError(with_option(option, f"{path}: {blocker} is a file, not a directory"))
     if not parent.is_dir():
-        raise GoiError(f"{path}: directory {parent} does not exist")
+        raise GoiError(with_option(option, f"{path}: directory {parent} does not exist"))
     if not os.access(parent, os.W_OK):
-        raise GoiError(f"{path}: directory {parent} is not writable")
+        raise GoiError(with_option(option, f"{path}: directory {parent} is not writable"))
 
 
 def _umask() -> int:

@@ -4,14 +4,23 @@ Every reader of a user's file goes through `regular_file` (or `read_text`/`read_
 FIFO, a device, a directory, a missing path or an oversized file is a clean error naming the
 path, never a hang, an endless read or a traceback. Output paths are checked here too: never
 an input, never a file where a directory is needed, never a name the file system refuses.
+
+Inputs are protected twice. A command's preflight calls `refuse_inputs` with every output it
+will write and every input it reads, before any work. The inputs it names are also recorded
+for the running command (`guarded_inputs`, opened by the CLI around each command), and every
+artifact write and output removal checks that record (`refuse_if_input`), so an output path
+that a preflight missed still cannot replace or delete an input: the command fails instead,
+and its staged outputs are dropped.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import stat
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -100,18 +109,49 @@ def _name_max(directory: Path) -> int:
         return 255
 
 
-def check_output_name(path: Path) -> None:
+def with_option(option: str | None, message: str) -> str:
+    """`message`, prefixed with the option that named the path when there is one."""
+    return f"{option}: {message}" if option else message
+
+
+def check_output_name(path: Path, option: str | None = None) -> None:
     """The file system will take this name: no component longer than its limit (usually 255
     bytes). Checked before anything else touches the path: stat() itself fails on such names."""
     limit = 255
     for part in path.parts:
         if len(os.fsencode(part)) > limit:
-            raise GoiError(f"{path}: the file name is longer than the file system allows ({limit})")
+            raise GoiError(
+                with_option(
+                    option,
+                    f"{path}: the file name is longer than the file system allows ({limit} bytes)",
+                )
+            )
     parent = path.parent if str(path.parent) else Path(".")
     if parent.is_dir() and len(os.fsencode(path.name)) > _name_max(parent):
         raise GoiError(
-            f"{path}: the file name is longer than the file system allows ({_name_max(parent)})"
+            with_option(
+                option,
+                f"{path}: the file name is longer than the file system allows "
+                f"({_name_max(parent)} bytes)",
+            )
         )
+
+
+def check_output_file(path: Path, option: str, force: bool = True) -> None:
+    """Preflight of a file a command will write later, in a directory it may still have to
+    create: a name the file system takes, no directory, FIFO or device at the path, no file in
+    the way of its directories, and (without `force`) nothing there yet."""
+    path = Path(path)
+    check_output_name(path, option)
+    if path.is_dir():
+        raise GoiError(f"{option}: {path} is a directory; goi writes a file there")
+    if path.exists() and not path.is_file():
+        raise GoiError(f"{option}: {path} is not a regular file (a FIFO or a device?)")
+    if (path.exists() or path.is_symlink()) and not force:
+        raise GoiError(f"{option}: {path} already exists; pass --force to overwrite it")
+    blocker = file_in_the_way(path.parent)
+    if blocker is not None:
+        raise GoiError(f"{option}: {path}: {blocker} is a file, not a directory")
 
 
 def file_in_the_way(directory: Path) -> Path | None:
@@ -122,7 +162,7 @@ def file_in_the_way(directory: Path) -> Path | None:
 def make_dir(path: str | os.PathLike[str], option: str) -> Path:
     """Create an output directory (and its parents); a file in the way is a clean error."""
     p = Path(path)
-    check_output_name(p)
+    check_output_name(p, option)
     blocker = file_in_the_way(p)
     if blocker is not None:
         raise GoiError(f"{option}: {p}: {blocker} is a file, not a directory")
@@ -137,24 +177,118 @@ def make_dir(path: str | os.PathLike[str], option: str) -> Path:
     return p
 
 
+#: A directory given as an input is protected file by file, up to this many files.
+MAX_PROTECTED_FILES = 200_000
+
+
+class _Guard:
+    """The inputs of the running command: their (device, inode) and their resolved paths."""
+
+    def __init__(self) -> None:
+        self.ids: set[tuple[int, int]] = set()
+        self.paths: set[Path] = set()
+
+    def add(self, path: Path) -> None:
+        if path.is_dir():
+            files = (q for q in path.rglob("*") if q.is_file())
+            for i, q in enumerate(files):
+                if i >= MAX_PROTECTED_FILES:
+                    break
+                self._add_file(q)
+        else:
+            self._add_file(path)
+
+    def _add_file(self, path: Path) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            st = path.stat()
+            self.ids.add((st.st_dev, st.st_ino))
+            self.paths.add(path.resolve())
+
+    def holds(self, path: Path) -> bool:
+        try:
+            st = path.stat()
+        except (OSError, ValueError):
+            return False  # nothing there (or nothing reachable): no input to lose
+        if (st.st_dev, st.st_ino) in self.ids:
+            return True
+        with contextlib.suppress(OSError, ValueError):
+            return path.resolve() in self.paths
+        return False
+
+
+_GUARD: ContextVar[_Guard | None] = ContextVar("goi_input_guard", default=None)
+
+
+@contextlib.contextmanager
+def guarded_inputs() -> Iterator[None]:
+    """Record the inputs the enclosed command names (through `refuse_inputs`/`protect`), so
+    that no artifact it writes and no file it removes can be one of them."""
+    token = _GUARD.set(_Guard())
+    try:
+        yield
+    finally:
+        _GUARD.reset(token)
+
+
+def protect(inputs: Iterable[str | os.PathLike[str] | None]) -> None:
+    """Add inputs of the running command to its record (a directory: every file in it)."""
+    guard = _GUARD.get()
+    if guard is None:
+        return
+    for i in inputs:
+        if i is not None:
+            guard.add(Path(i))
+
+
+def refuse_if_input(path: str | os.PathLike[str], option: str | None = None) -> None:
+    """The last line of defence of every write and removal: never one of the command's
+    inputs (as recorded by `protect`), whatever --force says."""
+    guard = _GUARD.get()
+    if guard is not None and guard.holds(Path(path)):
+        raise GoiError(
+            with_option(
+                option,
+                f"{path} is one of this command's inputs; goi never writes over "
+                "an input: choose another path",
+            )
+        )
+
+
 def _same(a: Path, b: Path) -> bool:
     try:
         if a.exists() and b.exists():
             return os.path.samefile(a, b)
     except OSError:
         pass
-    return a.resolve() == b.resolve()
+    with contextlib.suppress(OSError, ValueError):
+        return a.resolve() == b.resolve()
+    return False
 
 
-def refuse_inputs(outputs: Mapping[str, Path | None], inputs: Iterable[Path | None]) -> None:
+def _inside(path: Path, directory: Path) -> bool:
+    with contextlib.suppress(OSError, ValueError):
+        return path.resolve().is_relative_to(directory.resolve())
+    return False
+
+
+Outputs = Mapping[str, "str | os.PathLike[str] | Iterable[str | os.PathLike[str]] | None"]
+
+
+def refuse_inputs(outputs: Outputs, inputs: Iterable[str | os.PathLike[str] | None]) -> None:
     """An output path may never be one of the command's inputs (writing it would destroy the
-    input, e.g. `fit-field --cache FEATURES.h5`)."""
+    input, e.g. `fit-field --cache FEATURES.h5`). `outputs` maps an option to the file, or the
+    files, written under it; an input may be a directory, whose files are all protected. The
+    inputs are also recorded for the running command (`protect`)."""
     ins = [Path(i) for i in inputs if i is not None]
-    for option, out in outputs.items():
-        if out is None:
+    protect(ins)
+    for option, value in outputs.items():
+        if value is None:
             continue
-        for i in ins:
-            if _same(Path(out), i):
-                raise GoiError(
-                    f"{option}: {out} is one of this command's inputs; choose another path"
-                )
+        files = [value] if isinstance(value, str | os.PathLike) else list(value)
+        for out in map(Path, files):
+            check_output_name(out, option)  # before stat(), which fails on such names
+            for i in ins:
+                if _same(out, i) or (i.is_dir() and out.exists() and _inside(out, i)):
+                    raise GoiError(
+                        f"{option}: {out} is one of this command's inputs; choose another path"
+                    )

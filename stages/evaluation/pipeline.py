@@ -16,18 +16,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
+import h5py
 import numpy as np
 
 from schemas import validate_json
 from stages import __version__
 from stages.core.artifacts import check_writable, command_line, write_json
 from stages.core.errors import GoiError
-from stages.core.files import make_dir, refuse_inputs
+from stages.core.files import check_output_file, check_output_name, make_dir, refuse_inputs
 from stages.core.params import AT_LEAST_1, COSINE, SEED, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.core.staging import staged_outputs
 from stages.evaluation.metrics import Scores, image_scores, iou_3d, mean_scores
-from stages.evaluation.report import eval_page
+from stages.evaluation.report import eval_page, page_files_dir
 from stages.evaluation.room import Prompt, Room, load_room
 from stages.evaluation.variants import (
     FIELD_KIND,
@@ -50,6 +51,7 @@ from stages.semantics.feature_files import load_feature_file
 from stages.semantics.field import load_field
 from stages.semantics.field_model import FieldParams
 from stages.semantics.fit_field import FieldRun, fit_field
+from stages.semantics.kmeans import even_subset
 
 
 @dataclass
@@ -71,7 +73,8 @@ class EvalRun:
     html: Path | None = None
     """Also write an HTML report (overlays per prompt and view, metrics, timings)."""
     work: Path | None = None
-    """Directory for the intermediate artifacts (default: <out without .json>.work)."""
+    """Directory for the intermediate artifacts (default: <out without .json>.work): new,
+    empty, or one a previous eval made; other files there are never replaced."""
     text_embeddings: Path | None = None
     """Prompt embeddings JSON (default: the room's text_embeddings.json)."""
     bundle: Path | None = None
@@ -249,6 +252,73 @@ def _summarise(variant_report: dict, with_3d: bool) -> None:
     variant_report["prompts"] = variant_report.pop("prompts")  # keep the means first
 
 
+#: The intermediate files eval writes in --work (and the marker saying it made the directory).
+WORK_FILES = (
+    "features.h5",
+    "features.h5.partial",
+    "codebook.h5",
+    "blend_cache.h5",
+    "field_tfcc.h5",
+    "field_direct.h5",
+    "hyperplanes.h5",
+)
+WORK_MARKER = "goi-eval-work.txt"  # not ".goi-*": those are goi's temporary files
+
+
+def _check_work(work: Path) -> None:
+    """--work is eval's own: a new or empty directory, or one a previous eval made (marked, or
+    every clashing file an artifact written by `goi eval`); files of the user's there (e.g. the
+    features.h5 of their own pipeline) are never replaced. Created and marked here."""
+    check_output_name(work, "--work")
+    for f in (work / name for name in WORK_FILES):
+        check_output_file(f, "--work")
+    if work.is_dir() and not (work / WORK_MARKER).is_file():
+        theirs = [f for f in (work / n for n in WORK_FILES) if f.exists() and not _made_by_eval(f)]
+        if theirs:
+            raise GoiError(
+                f"--work: {work} already holds {theirs[0].name}, which goi eval did not write; "
+                "give a new or empty directory for eval's intermediate files"
+            )
+    make_dir(work, "--work")
+    try:
+        (work / WORK_MARKER).write_text("intermediate files of goi eval; safe to delete\n")
+    except OSError as e:
+        raise GoiError(f"--work: cannot write in {work} ({e.strerror or e})") from None
+
+
+def _made_by_eval(path: Path) -> bool:
+    try:
+        with h5py.File(path, "r") as f:
+            return str(f.attrs.get("command", "")).startswith("goi eval")
+    except (OSError, ValueError, TypeError, RuntimeError):
+        return False
+
+
+def _check_entries(p: EvalParams, files: dict[str, Path]) -> None:
+    """--entries against the feature cells init-codebook will sample, from the .npy headers,
+    before anything is written (a .pt file is only known once loaded: checked later)."""
+    cb = CodebookParams()
+    views = even_subset(list(files), cb.views)
+    per = max(1, cb.samples // len(views))
+    total = 0
+    for v in views:
+        path = files[v]
+        if path.suffix != ".npy":
+            return
+        try:
+            _, h, w = np.load(path, mmap_mode="r", allow_pickle=False).shape
+        except (ValueError, OSError, EOFError):
+            return  # a damaged file: load_feature_file names it later
+        scale = min(1.0, ExtractParams().max_side / max(h, w))
+        cells = max(1, round(h * scale)) * max(1, round(w * scale))
+        total += min(per, cells)
+    if p.entries > total:
+        raise GoiError(
+            f"--entries: {p.entries} codebook entries, but the features give at most {total} "
+            "samples to cluster; lower --entries"
+        )
+
+
 def run_eval(
     room_dir: Path,
     features: Path,
@@ -262,29 +332,50 @@ def run_eval(
     check_params(p)
     variants = _chosen_variants(run.variants)
     room = load_room(Path(room_dir), run.text_embeddings)
-    for path in (run.out, run.html):
+    for option, path in (("--out", run.out), ("--html", run.html)):
         if path is not None:
-            check_writable(Path(path), run.force)
-    inputs = [room.scene.ply_path, *room.scene.camera_files, room.dir / "prompts.json"]
-    refuse_inputs({"--out": run.out, "--html": run.html}, inputs)
+            check_writable(Path(path), run.force, option)
+    if run.html is not None and Path(run.html).resolve() == Path(run.out).resolve():
+        raise GoiError(f"--html: {run.html} is also --out; give the page another path")
     # every prompt's RES masks are found (or the bundle's RES opened and checked), and the
     # features and texts are checked to share one space, before anything is written
     bundle = _res_bundle(res, run.bundle)
     sources: dict[str, ResSource] = {}
     if res is not None:
         sources = {p.id: ResFiles(Path(res), p.id, p.text) for p in room.prompts}
-    first = next(iter(feature_files(room.scene, Path(features), "train").values()))
+    files = feature_files(room.scene, Path(features), "train", "--features")
+    first = next(iter(files.values()))
     dim = load_feature_file(first).shape[0]
     text_dim = next(iter(room.embeddings.values())).size
     if dim != text_dim:
         raise GoiError(
             f"{first}: the features have {dim} dimensions but the prompts' text embeddings "
-            f"{text_dim}; image and text features must share one space"
+            f"({room.embeddings_path}) {text_dim}; image and text features must share one space"
         )
+    _check_entries(p, files)
     work = Path(run.work or Path(run.out).with_suffix(".work"))
-    make_dir(work, "--work")
-    timer = _Timer()
     scene = room.scene
+    inputs = [
+        scene.ply_path,
+        *scene.camera_files,
+        room.dir / "split.json",
+        room.dir / "prompts.json",
+        room.embeddings_path,
+        room.dir / "gaussian_ids.npy",
+        room.dir / "eval",
+        scene.images_dir,
+        *files.values(),
+        Path(res) if res is not None else None,
+        run.bundle,
+    ]
+    outputs = {
+        "--out": run.out,
+        "--html": [run.html, page_files_dir(run.html)] if run.html is not None else None,
+        "--work": [work / name for name in WORK_FILES],
+    }
+    refuse_inputs(outputs, inputs)
+    _check_work(work)
+    timer = _Timer()
     report.log(
         f"eval: room {room.dir} ({scene.gaussians.count} Gaussians, {len(room.prompts)} prompts)"
     )

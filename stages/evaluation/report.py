@@ -85,6 +85,11 @@ def res_row(
     return "".join(row) + "</div>"
 
 
+def page_files_dir(page: Path) -> Path:
+    """The directory of a page's images: <page stem>_files beside it."""
+    return Path(page).with_name(Path(page).stem + "_files")
+
+
 def eval_page(
     path: Path,
     report: dict,
@@ -98,7 +103,7 @@ def eval_page(
     prediction (red) against the ground truth (green outline), one row per variant; when a RES
     model made the RES masks, `res` ({prompt id: (source, {view: (rgb, mask)})}) adds a row
     with the masks the fits used."""
-    files = path.with_name(path.stem + "_files")
+    files = page_files_dir(path)
     make_dir(files, "--html")
     variants = list(report["variants"])
     body = [

@@ -40,9 +40,11 @@ def parse_color(text: str, option: str = "--highlight") -> np.ndarray:
     if re.fullmatch(r"#[0-9a-f]{6}", t):
         return np.asarray([int(t[i : i + 2], 16) / 255 for i in (1, 3, 5)], np.float32)
     v = _three_numbers(t)
-    if v is not None and v.min() >= 0:
+    if v is not None and v.min() >= 0 and v.max() <= 255:
         return np.asarray(v / 255 if v.max() > 1 else v, np.float32)
-    raise GoiError(f"{option}: {text!r} is not a colour (a name like red, #rrggbb, or r,g,b)")
+    raise GoiError(
+        f"{option}: {text!r} is not a colour (a name like red, #rrggbb, or r,g,b of 0..1 or 0..255)"
+    )
 
 
 def _three_numbers(text: str) -> np.ndarray | None:
@@ -90,7 +92,7 @@ def export_ply(
     field: Field | None = None,
 ) -> tuple[Path, int]:
     """Write the edited PLY; returns its path and its number of Gaussians."""
-    check_writable(run.out, run.force)
+    check_writable(run.out, run.force, "--out")
     refuse_inputs({"--out": run.out}, [g.path])
     if sel.ply_sha256 != ply_sha:
         raise GoiError(

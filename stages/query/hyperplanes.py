@@ -80,6 +80,11 @@ def read_hyperplanes(path: str | os.PathLike[str]) -> dict[str, Hyperplane]:
                 require_finite(g["text_embedding"][()], f"{where}/text_embedding"),
                 info,
             )
+            if plane.W.ndim != 1 or plane.W.shape != plane.text.shape:
+                raise GoiError(
+                    f"{where}: W has shape {plane.W.shape} and text_embedding "
+                    f"{plane.text.shape}; both must be one vector of the feature dimension"
+                )
             if plane.prompt in out:
                 raise GoiError(f"{where}: prompt {plane.prompt[:60]!r} is stored twice")
             out[plane.prompt] = plane
@@ -121,16 +126,18 @@ def fit_hyperplane(
     check_params(p)
     out = Path(run.out)
     refuse_inputs({"--out": out}, [field_path])
-    check_writable(out, force=True)  # the prompt is added to an existing artifact
+    check_writable(out, True, "--out")  # the prompt is added to an existing artifact
     existing = read_hyperplanes(out) if out.exists() else {}
     field_sha = field_key(field_path)
     # The key covers every candidate mask file, so a hit needs no mask decoded at all.
     key = _fit_key(field_sha, text, masks.digest(masks.available(cams)), p)
     old = existing.get(prompt)
-    if old is not None and old.info.get("fit_key") == key and not run.refit:
+    # a stored plane of another shape (a damaged or edited file) is refitted, never used
+    n = renderer.field.codebook.shape[0]
+    fits = old is not None and old.W.shape == text.shape and old.scores.size == n
+    if old is not None and fits and old.info.get("fit_key") == key and not run.refit:
         return old, True
     chosen = choose_views(masks, cams, p)
-    n = renderer.field.codebook.shape[0]
     counts = Counts(np.zeros(n), np.zeros(n))
     for cam, m in chosen:
         view = renderer.render(cam)
@@ -166,9 +173,12 @@ def fit_hyperplane(
     return plane, False
 
 
-def load_plane(path: Path, prompt: str, field_path: Path, n_entries: int) -> Hyperplane:
+def load_plane(
+    path: Path, prompt: str, field_path: Path, n_entries: int, dim: int | None = None
+) -> Hyperplane:
     """The prompt's plane, refused when it was fitted for another field than `field_path`
-    (its scores would name another codebook's entries)."""
+    (its scores would name another codebook's entries) or, given the field's feature
+    dimension `dim`, when its W is of another dimension."""
     planes = read_hyperplanes(path)
     if prompt not in planes:
         listed = ", ".join(repr(p[:40]) for p in sorted(planes)[:5])
@@ -181,5 +191,10 @@ def load_plane(path: Path, prompt: str, field_path: Path, n_entries: int) -> Hyp
         raise GoiError(
             f"{path}: the hyperplane of {prompt[:60]!r} was fitted on another field than "
             f"{field_path}; fit it again with this field (goi fit-hyperplane)"
+        )
+    if dim is not None and plane.W.shape != (dim,):
+        raise GoiError(
+            f"{path}: the hyperplane of {prompt[:60]!r} has {plane.W.size} dimensions, the "
+            f"field {field_path} {dim}; fit it again with this field (goi fit-hyperplane)"
         )
     return plane

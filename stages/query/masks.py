@@ -7,6 +7,7 @@ decoded codebook entry, so a mask costs one render of the field (and the RGB rid
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -15,7 +16,13 @@ import numpy as np
 
 from stages.core.artifacts import write_png
 from stages.core.errors import GoiError, check_choice
-from stages.core.files import make_dir
+from stages.core.files import (
+    check_output_file,
+    check_output_name,
+    file_in_the_way,
+    make_dir,
+    refuse_inputs,
+)
 from stages.core.params import COSINE, Choice, check_params, name_list
 from stages.core.report import SILENT, Report
 from stages.query.osh import THRESHOLD, Hyperplane, threshold_plane
@@ -110,6 +117,27 @@ def mask_files(out: Path, cams: list[Camera], overlays: bool) -> list[Path]:
     ]
 
 
+def check_mask_outputs(
+    out: Path, cams: list[Camera], overlays: bool, force: bool, inputs: Iterable[Path | None] = ()
+) -> list[Path]:
+    """Every file render_masks would write, checked before the first render (all or nothing):
+    names the file system takes, no directory or file in the way, none of `inputs`, and
+    without `force` none there yet."""
+    files = mask_files(out, cams, overlays)
+    check_output_name(out, "--out")
+    blocker = file_in_the_way(out)
+    if blocker is not None:
+        raise GoiError(f"--out: {out}: {blocker} is a file, not a directory")
+    for f in files:
+        check_output_file(f, "--out")
+    refuse_inputs({"--out": files}, inputs)
+    if not force:
+        existing = [f for f in files if f.exists() or f.is_symlink()]
+        if existing:
+            raise GoiError(f"{existing[0]}: already exists; pass --force to overwrite it")
+    return files
+
+
 def render_masks(
     renderer: SemanticRenderer,
     plane: Hyperplane,
@@ -122,10 +150,7 @@ def render_masks(
     check_params(p)
     plane = plane_for(plane, p.mode, renderer.field, p.threshold)
     out = Path(run.out)
-    if not run.force:  # all or nothing: refuse before the first render, not half-way
-        existing = [f for f in mask_files(out, cams, not run.no_overlay) if f.exists()]
-        if existing:
-            raise GoiError(f"{existing[0]}: already exists; pass --force to overwrite it")
+    check_mask_outputs(out, cams, not run.no_overlay, run.force)
     make_dir(out, "--out")
     written = []
     for cam in report.progress(cams, "render-mask", show=lambda c: c.name if c else None):

@@ -13,16 +13,24 @@ from pathlib import Path
 from typing import Annotated
 
 from stages.core.artifacts import input_digest
-from stages.core.files import make_dir
+from stages.core.files import check_output_file, make_dir, refuse_inputs
 from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, res_masks_dir, wrote_res_masks
-from stages.query.masks import MODES, MaskParams, MaskRun, default_cameras, render_masks
+from stages.query.masks import (
+    MODES,
+    MaskParams,
+    MaskRun,
+    check_mask_outputs,
+    default_cameras,
+    render_masks,
+)
 from stages.query.osh import HyperplaneParams, threshold_plane
 from stages.query.prompts import check_prompt, safe_name, text_embedding
 from stages.query.res import res_source
 from stages.query.selection import Selection, select, write_selection
+from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.field import load_field_for
@@ -81,6 +89,34 @@ class QueryResult:
     res_masks: Path | None = None  # the RES masks a model made for the fit, when one ran
 
 
+def _check_outputs(
+    scene: Scene,
+    field_path: Path,
+    prompt: str,
+    sources: PromptSources,
+    run: QueryRun,
+    cams: list[Camera],
+) -> None:
+    """Every file the query writes, checked before any work: none is an input (the field, the
+    scene, the embeddings, a RES mask), a directory or under a file."""
+    inputs = [
+        field_path,
+        scene.ply_path,
+        *scene.camera_files,
+        sources.text_embeddings,
+        sources.bundle,
+        sources.res_masks,
+    ]
+    pdir = Path(run.out) / safe_name(prompt)
+    check_mask_outputs(pdir / "masks", cams, True, True, inputs)
+    files = [Path(run.out) / "hyperplanes.h5", pdir / "selection.h5"]
+    if run.export != "none":
+        files.append(pdir / f"{safe_name(prompt)}.ply")
+    for f in files:
+        check_output_file(f, "--out")
+    refuse_inputs({"--out": files}, inputs)
+
+
 def run_query(
     scene: Scene,
     field_path: Path,
@@ -103,6 +139,7 @@ def run_query(
     cams = default_cameras(scene, run.views)  # checked before any work
     if run.export == "highlight":
         parse_color(run.color, "--color")
+    _check_outputs(scene, field_path, prompt, sources, run, cams)
     out = make_dir(run.out, "--out")
     res_dir = None
     if qp.mode == "hyperplane":

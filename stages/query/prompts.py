@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+import unicodedata
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,9 @@ from stages.core.errors import GoiError
 from stages.core.files import read_json
 
 MAX_PROMPT_CHARS = 1000
+#: Unicode categories that show nothing: separators (spaces), format marks (zero-width space,
+#: direction marks) and controls.
+_INVISIBLE = {"Zs", "Zl", "Zp", "Cf", "Cc"}
 _SLUG = re.compile(r"[^a-z0-9]+")
 _PLAIN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
 
@@ -29,15 +33,35 @@ def check_prompt(text: str, option: str = "--prompt") -> str:
         raise GoiError(f"{option}: the prompt is empty")
     if len(t) > MAX_PROMPT_CHARS:
         raise GoiError(f"{option}: the prompt has {len(t)} characters; at most {MAX_PROMPT_CHARS}")
-    if any(ord(c) < 32 and c not in "\t" for c in t):
-        raise GoiError(f"{option}: the prompt contains control characters (NUL, newline, ...)")
+    if any(unicodedata.category(c) == "Cc" and c != "\t" for c in t):
+        raise GoiError(f"{option}: the prompt contains control characters (NUL, newline, DEL, ...)")
     try:
         t.encode("utf-8")
     except UnicodeEncodeError:  # a lone surrogate, e.g. undecodable bytes on the command line
         raise GoiError(
             f"{option}: the prompt is not valid Unicode text (undecodable bytes?)"
         ) from None
+    if all(unicodedata.category(c) in _INVISIBLE for c in t):
+        raise GoiError(
+            f"{option}: the prompt has no visible character (only spaces or format marks)"
+        )
     return t
+
+
+def check_plain_name(name: str, option: str, names: str = "a directory") -> str:
+    """A name that becomes one directory name (a prompt id): no separator, no '..', no
+    control character, not blank. `names` says which directory, for the message."""
+    if (
+        not name.strip()
+        or name in (".", "..")
+        or any(c in name for c in "/\\")
+        or not name.isprintable()
+    ):
+        raise GoiError(
+            f"{option}: {name[:60]!r} is not a plain name (it names {names}: no '/', "
+            "'\\', '..' or control characters)"
+        )
+    return name
 
 
 def safe_name(text: str, max_slug: int = 40) -> str:

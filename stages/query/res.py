@@ -18,7 +18,7 @@ from stages.core.artifacts import sha256_file, write_png
 from stages.core.errors import GoiError, warn
 from stages.core.files import make_dir
 from stages.query.osh import HyperplaneParams
-from stages.query.prompts import safe_name, view_file_name
+from stages.query.prompts import check_plain_name, safe_name, view_file_name
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
 from stages.semantics.bundle import Bundle, load_bundle
@@ -30,6 +30,8 @@ class ResFiles:
 
     def __init__(self, root: Path, prompt_id: str | None, prompt: str):
         root = Path(root)
+        if prompt_id is not None:
+            check_plain_name(prompt_id, "--prompt-id", "a subdirectory of --res-masks")
         if not root.is_dir():
             raise GoiError(f"--res-masks: {root} is not a directory")
         candidates = [root / prompt_id] if prompt_id else [root / safe_name(prompt), root]
@@ -151,6 +153,8 @@ def choose_views(
         for name in [v.strip() for v in p.fit_on.split(",") if v.strip()]:
             if name not in by_name:
                 raise GoiError(f"--fit-on: the scene has no training view '{name}'")
+            if not source.available([by_name[name]]):
+                raise GoiError(f"--fit-on: view '{name}' has no RES mask ({source.source})")
             m = source.mask(by_name[name])
             if not m.any():
                 raise GoiError(
@@ -163,6 +167,12 @@ def choose_views(
     if p.fit_views < 1:
         raise GoiError("--fit-views must be at least 1")
     pool = source.available(cams)
+    if not pool:
+        names = ", ".join(c.name for c in cams[:3]) + (", ..." if len(cams) > 3 else "")
+        raise GoiError(
+            f"--res-masks: {source.source.removeprefix('files:')} has no mask for any training "
+            f"view (<view>.png for {names})"
+        )
     if isinstance(source, ResModel):
         # a model costs a run per view: try evenly spaced views until enough are non-empty
         step = max(1, len(pool) // (3 * p.fit_views))

@@ -20,6 +20,9 @@ from stages.core.errors import GoiError
 GL_TO_CV = np.diag([1.0, -1.0, -1.0])
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 MAX_IMAGE_SIDE = 16384
+#: A view is rendered into several float32 images of its size (features, alpha, depth, index):
+#: larger views are refused before anything is allocated (the same limit as images on disk).
+MAX_VIEW_PIXELS = 100_000_000
 
 
 @dataclass
@@ -74,6 +77,12 @@ def checked(cam: Camera, where: str) -> Camera:
             f"{where}: camera '{cam.name}' has image size {cam.width}x{cam.height}; "
             f"goi accepts 1..{MAX_IMAGE_SIDE} pixels a side"
         )
+    if cam.width * cam.height > MAX_VIEW_PIXELS:
+        raise GoiError(
+            f"{where}: camera '{cam.name}' has image size {cam.width}x{cam.height} "
+            f"({cam.width * cam.height / 1e6:.0f} megapixels); goi renders views of up to "
+            f"{MAX_VIEW_PIXELS // 1_000_000} megapixels"
+        )
     if not (math.isfinite(cam.cx) and math.isfinite(cam.cy)):
         raise GoiError(f"{where}: camera '{cam.name}' has a non-finite principal point")
     if not (np.isfinite(cam.R).all() and np.isfinite(cam.t).all()):
@@ -116,7 +125,13 @@ def pixels(obj: dict, key: str, where: str) -> int:
     return int(x)
 
 
-def matrix(obj: dict, key: str, shape: tuple[int, int], where: str) -> np.ndarray:
+def view_name_ok(name: str) -> bool:
+    """A view name goi can key artifacts by: non-empty and printable (no NUL or control
+    character). Names become file names only through `view_file_name`, never as they are."""
+    return bool(name.strip()) and name.isprintable()
+
+
+def matrix(obj: dict, key: str, shape: tuple[int, ...], where: str) -> np.ndarray:
     try:
         m = np.asarray(obj[key], dtype=np.float64)
     except KeyError:

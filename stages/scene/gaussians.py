@@ -106,6 +106,10 @@ def _check_header(path: Path) -> None:
     if end < 0:
         raise GoiError(f"{path}: PLY header has no 'end_header' in its first 64 KiB")
     body_start = head.index(b"\n", end) + 1 if b"\n" in head[end:] else len(head)
+    for i, raw in enumerate(head[:end].splitlines()):
+        if not raw.isascii():
+            shown = raw.decode("ascii", "backslashreplace").strip()[:120]
+            raise GoiError(f"{path}: PLY header line {i + 1} is not ASCII: {shown!r}")
     lines = head[:end].decode("ascii", "replace").splitlines()
     fmt = next(((ln.split() + ["", ""])[1] for ln in lines if ln.startswith("format ")), "")
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
@@ -158,6 +162,12 @@ def load_ply(path: str | os.PathLike[str]) -> Gaussians:
     except (plyfile.PlyParseError, ValueError, KeyError, EOFError, IndexError) as e:
         raise GoiError(f"{p}: cannot parse PLY ({e})") from None
     names = vertex.dtype.names or ()
+    odd = [nm for nm in names if vertex.dtype[nm].kind not in "iuf" or vertex.dtype[nm].shape]
+    if odd:
+        raise GoiError(
+            f"{p}: vertex property '{odd[0]}' is a list (or not a number); the properties of "
+            "a 3DGS PLY are single numbers"
+        )
     missing = [n for n in REQUIRED if n not in names]
     if missing:
         raise GoiError(f"{p}: field(s) {', '.join(missing)} missing: not an INRIA 3DGS PLY")

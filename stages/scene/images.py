@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -37,9 +38,17 @@ def image_size(path: Path) -> tuple[int, int] | None:
             f.seek(int.from_bytes(size, "big") - 2, 1)
 
 
-def _imread(path: Path, what: str) -> np.ndarray:
+def _quiet_cv2() -> Any:
+    """cv2, with its own log silenced: a damaged PNG makes OpenCV print lines of its own to
+    stderr beside goi's one error line; goi reports the failure itself."""
     import cv2
 
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    return cv2
+
+
+def _imread(path: Path, what: str) -> np.ndarray:
+    cv2 = _quiet_cv2()
     regular_file(path, what)
     try:
         size = image_size(path)

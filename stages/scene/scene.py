@@ -162,8 +162,9 @@ def load_scene(
                 f"{d}: no cameras.json, transforms*.json or sparse/ COLMAP model; pass --cameras"
             )
     names = [c.name for c in cams]
-    if d is not None and (d / "split.json").is_file():
-        split = _read_split(d / "split.json", set(names))
+    # a split.json that is there is read (a FIFO or a directory is refused, never skipped)
+    if d is not None and ((d / "split.json").exists() or (d / "split.json").is_symlink()):
+        split = _read_split(d / "split.json", set(names), files)
         train, test = split["train"], split.get("test", [])
     if train is None:
         train = names
@@ -177,7 +178,7 @@ def load_scene(
     return Scene(ply_path, cams, files, images_dir, train, test)
 
 
-def _read_split(path: Path, names: set[str]) -> dict[str, list[str]]:
+def _read_split(path: Path, names: set[str], camera_files: list[Path]) -> dict[str, list[str]]:
     split = read_json(path)
     if not isinstance(split, dict):
         raise GoiError(f'{path}: expected an object {{"train": [views], "test": [views]}}')
@@ -188,7 +189,10 @@ def _read_split(path: Path, names: set[str]) -> dict[str, list[str]]:
             raise GoiError(f"{path}: '{key}' must be a list of view names (strings)")
         unknown = [n for n in views if n not in names]
         if unknown:
-            raise GoiError(f"{path}: '{key}' names views without a camera: {_preview(unknown)}")
+            where = ", ".join(f.name for f in camera_files[:2]) or "the camera files"
+            raise GoiError(
+                f"{path}: '{key}' names views without a camera in {where}: {_preview(unknown)}"
+            )
         if len(set(views)) != len(views):
             raise GoiError(f"{path}: '{key}' names a view more than once")
         out[key] = views

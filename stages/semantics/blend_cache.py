@@ -221,7 +221,7 @@ def cache_target(
     if p.is_dir():
         raise GoiError(f"--cache: {p} is a directory; give the path of the blend cache file")
     if not (p.exists() or p.is_symlink()):
-        check_writable(p, force)
+        check_writable(p, force, "--cache")
         return False
     regular_file(p, "blend cache file (--cache)")
     want = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
@@ -232,7 +232,7 @@ def cache_target(
             f"--cache: {p} exists and is not the blend cache of these views, PLY and options; "
             "pass --force to replace it, or give another --cache path"
         )
-    check_writable(p, force)
+    check_writable(p, force, "--cache")
     return False
 
 

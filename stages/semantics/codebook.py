@@ -10,7 +10,7 @@ from typing import Annotated
 
 import numpy as np
 
-from stages.core.arrays import normalise, require_finite
+from stages.core.arrays import normalise, require_finite, require_nonzero_rows
 from stages.core.artifacts import check_writable, input_digest, open_h5, put, write_h5
 from stages.core.errors import GoiError
 from stages.core.files import refuse_inputs
@@ -50,7 +50,7 @@ def init_codebook(
     features_path: Path, p: CodebookParams, run: CodebookRun, report: Report = SILENT
 ) -> Path:
     check_params(p)
-    check_writable(run.out, run.force)
+    check_writable(run.out, run.force, "--out")
     refuse_inputs({"--out": run.out}, [features_path])
     fm = load_features(features_path)
     rng = np.random.default_rng(p.seed)
@@ -82,4 +82,4 @@ def load_codebook(path: str | os.PathLike[str]) -> np.ndarray:
         entries = require_finite(f["entries"][()], f"{path}: dataset 'entries'")
     if entries.shape[0] < 2 or entries.shape[1] < 1:
         raise GoiError(f"{path}: a codebook needs at least 2 entries; it has {entries.shape}")
-    return entries
+    return require_nonzero_rows(entries, f"{path}: dataset 'entries'")

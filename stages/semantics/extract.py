@@ -18,7 +18,7 @@ import numpy as np
 
 from stages.core.artifacts import check_writable, put, sha256_files, stamp
 from stages.core.errors import GoiError
-from stages.core.files import refuse_inputs
+from stages.core.files import check_output_name, refuse_if_input, refuse_inputs
 from stages.core.params import AT_LEAST_1, Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.core.staging import kept_on_interrupt
@@ -59,8 +59,15 @@ def _write_views(
     report: Report,
 ) -> Path:
     out = run.out
-    check_writable(out, run.force)
-    partial = out.with_name(out.name + ".partial")
+    check_writable(out, run.force, "--out")
+    partial = _partial(out)
+    check_output_name(partial, "--out")
+    if (partial.exists() or partial.is_symlink()) and not partial.is_file():
+        raise GoiError(
+            f"--out: {partial} (where extract keeps an unfinished run) is not a regular file; "
+            "move it away"
+        )
+    refuse_if_input(partial, "--out")
     mode = "w"
     if partial.is_file():
         try:
@@ -109,22 +116,26 @@ def _write_views(
     return out
 
 
-def feature_files(scene: Scene, src: Path, split: str) -> dict[str, Path]:
+def _partial(out: Path) -> Path:
+    return out.with_name(out.name + ".partial")
+
+
+def feature_files(scene: Scene, src: Path, split: str, option: str = "--from") -> dict[str, Path]:
     """The feature file of every view of the split in `src` (each one must have one)."""
     if not src.is_dir():
-        raise GoiError(f"--from: {src} is not a directory")
+        raise GoiError(f"{option}: {src} is not a directory")
     cams = scene.views(split)
     found = {c.name: find_feature_file(src, c.name, c.image) for c in cams}
     missing = [n for n, f in found.items() if f is None]
     if len(missing) == len(found):
         raise GoiError(
-            f"--from: {src} has no <view>.npy or <view>.pt for any of the "
+            f"{option}: {src} has no <view>.npy or <view>.pt for any of the "
             f"{len(found)} {split} views (e.g. {cams[0].name}.npy): do the "
             "feature files belong to this scene?"
         )
     if missing:
         raise GoiError(
-            f"--from: {src} has no features for view(s) {', '.join(missing[:5])}"
+            f"{option}: {src} has no features for view(s) {', '.join(missing[:5])}"
             f"{' ...' if len(missing) > 5 else ''}"
         )
     return {n: f for n, f in found.items() if f is not None}
@@ -136,7 +147,8 @@ def import_features(
     """Write the features artifact from per-image `.npy` / `.pt` files in `src`."""
     check_params(p)
     files = feature_files(scene, src, p.split)
-    refuse_inputs({"--out": run.out}, [*files.values(), scene.ply_path, *scene.camera_files])
+    outputs = {"--out": [run.out, _partial(run.out)]}
+    refuse_inputs(outputs, [*files.values(), scene.ply_path, *scene.camera_files])
     inputs = {
         "cameras": scene.cameras_digest(),
         # Every byte: a file edited in place must not pass for the one a field was fitted on.
@@ -168,9 +180,10 @@ def encode_views(
 
     bundle = load_bundle(bundle_dir)
     names = [c.name for c in scene.views(p.split)]
-    for n in names:  # fail before any work on a missing or mis-sized image
-        scene.image_path(scene.camera(n))
-    refuse_inputs({"--out": run.out}, [scene.ply_path, *scene.camera_files])
+    # fail before any work on a missing or mis-sized image
+    images = [scene.image_path(scene.camera(n)) for n in names]
+    outputs = {"--out": [run.out, _partial(run.out)]}
+    refuse_inputs(outputs, [scene.ply_path, *scene.camera_files, bundle_dir, *images])
     inputs = {"cameras": scene.cameras_digest(), "bundle": bundle.digest()}
 
     def make(name: str) -> np.ndarray:

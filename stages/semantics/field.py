@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.core.arrays import normalise, require_finite
+from stages.core.arrays import normalise, require_finite, require_nonzero_rows
 from stages.core.artifacts import open_h5, put, write_h5
 from stages.core.errors import GoiError
 
@@ -95,6 +95,8 @@ def load_field(path: str | os.PathLike[str]) -> Field:
         )
     if n < 1:
         raise GoiError(f"{path}: the codebook has no entries")
+    if not field.direct:
+        require_nonzero_rows(field.codebook, f"{path}: dataset 'codebook'")
     return field
 
 

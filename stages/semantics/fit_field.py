@@ -18,9 +18,10 @@ import torch
 
 from stages.core.artifacts import check_writable, input_digest
 from stages.core.errors import GoiError
-from stages.core.files import refuse_inputs
+from stages.core.files import check_output_name, refuse_if_input, refuse_inputs
 from stages.core.params import NON_NEGATIVE, check_params
 from stages.core.report import SILENT, Report
+from stages.render.constants import ALPHA_MIN
 from stages.scene.scene import Scene
 from stages.semantics.blend_cache import cache_nbytes, cache_target, ensure_cache
 from stages.semantics.checkpoint import check_checkpoint, load_checkpoint, save_checkpoint
@@ -92,13 +93,21 @@ def fit_field(
     # Everything is checked before the blend cache is built (minutes on a big scene).
     check_params(p)
     check_params(run)
-    check_writable(run.out, run.force)
+    check_writable(run.out, run.force, "--out")
     cache_path = run.cache or run.out.with_name("blend_cache.h5")
-    outputs = {"--out": run.out, "--cache": cache_path}
+    # <out>.ckpt is written while fitting and removed at the end, so it is an output too
+    check_output_name(run.checkpoint, "--out")
+    outputs = {"--out": run.out, "--cache": cache_path, "--out (its checkpoint)": run.checkpoint}
     refuse_inputs(outputs, [scene.ply_path, *scene.camera_files, features_path, codebook_path])
     if cache_path.resolve() == run.out.resolve():
         raise GoiError(f"--cache: {cache_path} is also --out; give them different paths")
     g = scene.gaussians
+    renderable = g.valid if g.valid.size else np.ones(g.count, bool)
+    if not (g.opacities[renderable] >= ALPHA_MIN).any():
+        raise GoiError(
+            f"{scene.ply_path}: every Gaussian is transparent (opacity below {ALPHA_MIN:.4f}): "
+            "nothing renders, so there is nothing to fit"
+        )
     train = scene.views("train")
     views = [c.name for c in train]
     sizes = feature_grid(features_path, views)
@@ -215,5 +224,6 @@ def fit_field(
         name: t.detach().numpy() for name, t in zip(PARAMETERS, model.parameter_list(), strict=True)
     }
     save_field(run.out, tensors, np.asarray(curve), views, p.config(), inputs, run.force)
+    refuse_if_input(run.checkpoint)
     run.checkpoint.unlink(missing_ok=True)
     return run.out

@@ -38,8 +38,8 @@ def spherical_kmeans(
     """Cluster unit rows x [M, D] into k unit centres [k, D]; returns centres and counts [k]."""
     if x.shape[0] < k:
         raise GoiError(
-            f"only {x.shape[0]} feature samples for {k} codebook entries: lower "
-            "--entries or sample more views"
+            f"--entries: only {x.shape[0]} feature samples for {k} codebook entries: lower "
+            "--entries, or raise --samples or --views"
         )
     rng = np.random.default_rng(seed)
     xt = torch.from_numpy(np.ascontiguousarray(x, np.float32))

@@ -302,6 +302,171 @@ def _cache_with_a_bad_id(s, tmp):
     return _field(s, tmp, "--cache", str(cache))
 
 
+# --- third sweep: outputs that are (or hold) inputs, and the rest of the external run ----------
+
+
+def _box_dir(out: Path) -> Path:
+    return out / safe_name("box")
+
+
+def _export(s, tmp, out, *extra, selection=None):
+    return ["export-ply", "--scene", str(s["scene"]), "--selection",
+            str(selection or s["selection"]), "--out", str(out), *extra]  # fmt: skip
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    (shutil.copytree if src.is_dir() else shutil.copy)(src, dst)
+    return dst
+
+
+def _ckpt_is_codebook(s, tmp):
+    cb = _copy(s["w"] / "c.h5", tmp / "field.h5.ckpt")  # <out>.ckpt is the codebook given
+    return _field(s, tmp, "--checkpoint-every", "1", codebook=cb, out=tmp / "field.h5")
+
+
+def _query_field_inside_out(s, tmp):
+    field = _copy(s["w"] / "field.h5", _box_dir(tmp / "q") / "selection.h5")
+    return _query(s, tmp)[:4] + [str(field)] + _query(s, tmp)[5:]
+
+
+def _query_res_inside_out(s, tmp):
+    res = _copy(s["w"] / "res", _box_dir(tmp / "q") / "masks")
+    argv = _query(s, tmp, "--views", s["train"][0])
+    return [str(res) if a == str(s["w"] / "res") else a for a in argv]
+
+
+def _query_ply_inside_out(s, tmp):
+    ply = _copy(s["scene"] / "point_cloud.ply", _box_dir(tmp / "q") / f"{safe_name('box')}.ply")
+    return ["query", "--ply", str(ply), "--cameras", str(s["scene"] / "cameras.json"),
+            *_query(s, tmp)[3:]]  # fmt: skip
+
+
+def _in_query_out(make_thing: Callable[[Path], object]):
+    def make(s, tmp):
+        make_thing(_box_dir(tmp / "q"))
+        return _query(s, tmp)
+
+    return make
+
+
+def _partial(kind: str):
+    def make(s, tmp):
+        partial = tmp / "o.h5.partial"
+        os.mkfifo(partial) if kind == "fifo" else partial.mkdir()
+        return _extract(s["scene"], s, tmp)
+
+    return make
+
+
+def _eval_with(edit: Callable[[Path], object], *extra: str, features=None):
+    def make(s, tmp):
+        argv = _eval_room(s, tmp, features=features(s, tmp) if features else None)
+        edit(tmp / "room")
+        return argv + [a.replace("{tmp}", str(tmp)) for a in extra]
+
+    return make
+
+
+def _prompts(edit: Callable[[list], object]):
+    def change(room: Path):
+        prompts = json.loads((room / "prompts.json").read_text())
+        edit(prompts)
+        (room / "prompts.json").write_text(json.dumps(prompts))
+
+    return change
+
+
+def _work_holds_user_files(s, tmp):
+    _copy(s["w"] / "f.h5", tmp / "work" / "features.h5")
+    _copy(s["w"] / "c.h5", tmp / "work" / "codebook.h5")
+    return _eval_room(s, tmp) + ["--work", str(tmp / "work")]
+
+
+def _work_is_the_room(s, tmp):
+    argv = _eval_room(s, tmp)
+    _copy(s["w"] / "f.h5", tmp / "room" / "features.h5")
+    return argv + ["--work", str(tmp / "room")]
+
+
+def _huge_camera(s, tmp):
+    cams = json.loads((s["scene"] / "cameras.json").read_text())[:1]
+    cams[0].update(width=16384, height=16384, img_name="novel")
+    (tmp / "novel.json").write_text(json.dumps(cams))
+    return _render(s, tmp, extra=("--camera-file", str(tmp / "novel.json")))
+
+
+def _planes_of_dim(d: int):
+    def edit(f: h5py.File):
+        g = f["prompts"][safe_name("box")]
+        for name in ("W", "text_embedding"):
+            data = g[name][()][:d]
+            del g[name]
+            g.create_dataset(name, data=data)
+
+    return edit
+
+
+def _zero_codebook(f: h5py.File) -> None:
+    _replace("entries", lambda a: np.zeros_like(a))(f)
+
+
+def _transparent(d: Path):
+    v = load_ply(d / "point_cloud.ply").vertex.copy()
+    v["opacity"] = -1e30
+    write_ply(d / "point_cloud.ply", v)
+
+
+def _scene_field(edit: Callable[[Path], None]):
+    def make(s, tmp):
+        d = _scene(s, tmp)
+        edit(d)
+        return ["fit-field", "--scene", str(d), "--features", str(s["w"] / "f.h5"),
+                "--codebook", str(s["w"] / "c.h5"), "--out", str(tmp / "field.h5"),
+                "--iterations", "2"]  # fmt: skip
+
+    return make
+
+
+def _res_copy(edit: Callable[[Path, dict], None]):
+    def make(s, tmp):
+        res = _copy(s["w"] / "res", tmp / "res")
+        edit(res, s)
+        argv = _query(s, tmp)
+        return [str(res) if a == str(s["w"] / "res") else a for a in argv]
+
+    return make
+
+
+def _only_test_view_masks(res: Path, s) -> None:
+    for f in list(res.glob("*.png")):
+        f.unlink()
+    for v in s["test"]:
+        cv2.imwrite(str(res / f"{v}.png"), np.full((36, 48), 255, np.uint8))
+
+
+def _fit_on_missing(s, tmp):
+    argv = _res_copy(lambda r, s: (r / f"{s['train'][0]}.png").unlink())(s, tmp)
+    return argv + ["--fit-on", s["train"][0]]
+
+
+def _corrupt_res_mask(res: Path, s) -> None:
+    (res / f"{s['train'][0]}.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 20)
+
+
+def _prompt(text: str, embed: bool = True):
+    def make(s, tmp):
+        emb = json.loads((s["w"] / "text.json").read_text())
+        if embed:
+            emb[text] = emb["box"]
+        (tmp / "t.json").write_text(json.dumps(emb))
+        argv = _query(s, tmp, text=tmp / "t.json")
+        argv[argv.index("--prompt") + 1] = text
+        return argv
+
+    return make
+
+
 LONG = "x" * 300
 
 CASES = [
@@ -445,6 +610,138 @@ CASES = [
          lambda s, t: _eval_room(s, t, text={"box": [1.0, 0.5, 0.25]}),
          ("features", "16 dimensions", "text embeddings")),
     Case("eval: a ground-truth mask missing", _eval_room_missing, ("ground-truth mask",)),
+    # third sweep: an output path that is, or holds, one of the inputs
+    Case("fit-field: <out>.ckpt is the --codebook", _ckpt_is_codebook,
+         ("field.h5.ckpt", "inputs")),
+    Case("export-ply --out is --selection (even with --force)",
+         lambda s, t: _export(s, t, _copy(s["selection"], t / "sel.h5"), "--force",
+                              selection=t / "sel.h5"), ("--out", "sel.h5", "inputs")),
+    Case("export-ply --semantics --field F --out F (even with --force)",
+         lambda s, t: _export(s, t, _copy(s["w"] / "field.h5", t / "f.h5"), "--semantics",
+                              "--field", str(t / "f.h5"), "--force"), ("--out", "f.h5", "inputs")),
+    Case("query --out D where --field is D/<prompt>/selection.h5", _query_field_inside_out,
+         ("--out", "selection.h5", "inputs")),
+    Case("query --out D where --res-masks is D/<prompt>/masks", _query_res_inside_out,
+         ("--out", "masks", "inputs")),
+    Case("query --out D where --ply is D/<prompt>/<prompt>.ply", _query_ply_inside_out,
+         ("--out", ".ply", "inputs")),
+    Case("query: out/<prompt>/selection.h5 is a directory (before fitting)",
+         _in_query_out(lambda d: (d / "selection.h5").mkdir(parents=True)),
+         ("--out", "selection.h5", "directory")),
+    Case("query: out/<prompt>/masks is a file (before fitting)",
+         _in_query_out(lambda d: (d.mkdir(parents=True), (d / "masks").write_text("x"))),
+         ("--out", "masks", "is a file")),
+    Case("eval --html is the room's text_embeddings.json (even with --force)",
+         _eval_with(lambda r: None, "--html", "{tmp}/room/text_embeddings.json", "--force"),
+         ("--html", "text_embeddings.json", "inputs")),
+    Case("eval --out and --html the same file",
+         _eval_with(lambda r: None, "--html", "{tmp}/r.json"), ("--html", "--out")),
+    Case("eval --work holding the user's own features.h5 and codebook.h5", _work_holds_user_files,
+         ("--work", "features.h5", "did not write")),
+    Case("eval --work is the room (holding a features.h5)", _work_is_the_room,
+         ("--work", "features.h5")),
+    Case("extract: <out>.partial is a FIFO", _partial("fifo"), ("o.h5.partial", "regular file")),
+    Case("extract: <out>.partial is a directory", _partial("dir"),
+         ("o.h5.partial", "regular file")),
+    # third sweep: internal errors
+    Case("render-mask --camera-file with a 16384x16384 camera", _huge_camera,
+         ("novel.json", "megapixels")),
+    Case("prompts.json targets 1e400",
+         _eval_with(lambda r: (r / "prompts.json").write_text(
+             (r / "prompts.json").read_text().replace('"targets": [1]', '"targets": [1e400]'))),
+         ("prompts.json", "targets")),
+    Case("hyperplanes whose W has another dimension than the field",
+         lambda s, t: _select(s, t, planes=_h5_copy(s, t, "planes.h5", _planes_of_dim(5)),
+                              extra=("--mode", "threshold")), ("planes.h5", "dimensions")),
+    Case("extract --out of 255 bytes (its .partial is longer)",
+         lambda s, t: _extract(s["scene"], s, t)[:-1] + [str(t / ("n" * 252 + ".h5"))],
+         ("--out", ".partial", "longer than the file system allows")),
+    Case("render-mask --out directory name of 300 bytes",
+         lambda s, t: _render(s, t)[:-1] + [str(t / LONG)],
+         ("--out", "longer than the file system allows")),
+    Case("a list property for x in the PLY",
+         _ply_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty list uchar float x\n"
+                   "property float y\nend_header\n", b"1 0.5 1\n2 0.5 0.25 1\n"),
+         ("point_cloud.ply", "'x'", "list")),
+    # third sweep: values silently accepted, or refused late
+    Case("a codebook whose entries are all zero",
+         lambda s, t: _field(s, t, codebook=_h5_copy(s, t, "c.h5", _zero_codebook)),
+         ("c.h5", "entries", "all zeros")),
+    Case("a field with an all-zero codebook entry (inspect)",
+         lambda s, t: ["inspect", str(_h5_copy(s, t, "field.h5", _replace(
+             "codebook", lambda a: np.where(np.arange(len(a))[:, None] == 0, 0, a))))],
+         ("field.h5", "problem")),
+    Case("fit-field on a PLY whose Gaussians are all transparent", _scene_field(_transparent),
+         ("point_cloud.ply", "transparent")),
+    Case("export-ply --highlight 1e300,1e300,1e300",
+         lambda s, t: _export(s, t, t / "o.ply", "--highlight", "1e300,1e300,1e300"),
+         ("--highlight", "0..255")),
+    Case("prompts.json test_views a string",
+         _eval_with(_prompts(lambda p: p[0].update(test_views="v001"))),
+         ("prompts.json", "test_views")),
+    Case("prompts.json with a prompt id twice",
+         _eval_with(_prompts(lambda p: p.append(dict(p[0])))), ("prompts.json", "'p1'", "twice")),
+    Case("prompts.json test_views naming an unknown view",
+         _eval_with(_prompts(lambda p: p[0]["test_views"].append("v999"))),
+         ("prompts.json", "v999")),
+    Case("prompts.json id '../../escape'",
+         _eval_with(_prompts(lambda p: p[0].update(id="../../escape"))),
+         ("prompts.json", "'id'", "plain name")),
+    Case("prompts.json text with control characters",
+         _eval_with(_prompts(lambda p: p[0].update(text="bo\x1bx"))),
+         ("prompts.json", "control characters")),
+    Case("prompts.json a prompt without text", _eval_with(_prompts(lambda p: p[0].pop("text"))),
+         ("prompts.json", "'text'")),
+    Case("an eval ground-truth mask of another size (before fitting)",
+         _eval_with(lambda r: [cv2.imwrite(str(f), np.zeros((10, 10), np.uint8))
+                               for f in sorted((r / "eval" / "masks" / "p1").glob("*.png"))[:1]]),
+         ("eval", "10x10", "48x36")),
+    Case("an eval ground-truth mask that is not an image (before fitting)",
+         _eval_with(lambda r: [f.write_bytes(b"junk")
+                               for f in sorted((r / "eval" / "masks" / "p1").glob("*.png"))[:1]]),
+         ("eval", "cannot read mask image")),
+    Case("a room without split.json (no test views)",
+         _eval_with(lambda r: (r / "split.json").unlink()), ("room", "no test views")),
+    Case("eval --features is a regular file",
+         lambda s, t: [a if a != str(s["features"]) else str(s["w"] / "text.json")
+                       for a in _eval_room(s, t)], ("--features", "not a directory")),
+    Case("eval --entries more than the feature cells (before writing anything)",
+         _eval_with(lambda r: None, "--entries", "100000"), ("--entries", "100000")),
+    Case("eval --work name of 300 bytes", _eval_with(lambda r: None, "--work", "{tmp}/" + LONG),
+         ("--work", "longer than the file system allows")),
+    Case("fit-field --out of 255 bytes with checkpoints (<out>.ckpt is longer)",
+         lambda s, t: _field(s, t, "--checkpoint-every", "1", out=t / ("n" * 252 + ".h5")),
+         ("--out", ".ckpt", "longer than the file system allows")),
+    Case("fit-field --cache in a missing directory",
+         lambda s, t: _field(s, t, "--cache", str(t / "no" / "bc.h5")),
+         ("--cache", "does not exist")),
+    Case("init-codebook --samples 3 --entries 8",
+         lambda s, t: ["init-codebook", "--features", str(s["w"] / "f.h5"), "--entries", "8",
+                       "--samples", "3", "--out", str(t / "c.h5")], ("--entries", "--samples")),
+    Case("a PLY header with non-ASCII bytes in a property name",
+         _ply_case(lambda d: (d / "point_cloud.ply").write_bytes((d / "point_cloud.ply")
+                   .read_bytes().replace(b"float opacity", b"float opac\xc3\xa9ity", 1))),
+         ("point_cloud.ply", "not ASCII", "opac")),
+    Case("split.json is a FIFO (never silently skipped)",
+         _scene_case(lambda d: ((d / "split.json").unlink(), os.mkfifo(d / "split.json"))),
+         ("split.json", "regular file")),
+    Case("a camera img_name with NUL", _cameras_json(lambda c: c[1].update(img_name="v\x00001")),
+         ("cameras.json", "img_name")),
+    Case("a camera img_name '../../etc/passwd' (split.json then names a view without camera)",
+         _cameras_json(lambda c: c[1].update(img_name="../../etc/passwd")),
+         ("split.json", "without a camera in cameras.json")),
+    Case("a camera position of 2 numbers", _cameras_json(lambda c: c[1].update(position=[0, 0])),
+         ("cameras.json", "'position'")),
+    Case("a prompt with DEL and C1 control characters (in the embeddings)",
+         _prompt("bo\x7fx\x85"), ("--prompt", "control characters")),
+    Case("a prompt of only a zero-width space", _prompt("\u200b"), ("--prompt", "visible")),
+    Case("--prompt-id '../..'", lambda s, t: _query(s, t, "--prompt-id", "../.."),
+         ("--prompt-id", "plain name")),
+    Case("RES masks only for the test views", _res_copy(_only_test_view_masks),
+         ("--res-masks", "training view")),
+    Case("--fit-on a view whose RES mask is missing", _fit_on_missing, ("--fit-on", "RES mask")),
+    Case("a damaged RES mask gives one line (OpenCV's own log silenced)",
+         _res_copy(_corrupt_res_mask), ("cannot read mask image",), subprocess=True),
 ]  # fmt: skip
 
 
@@ -475,7 +772,7 @@ def test_hostile_input(case, world, tmp_path, capsys):
 
 
 def test_enough_cases():
-    assert len(CASES) >= 40
+    assert len(CASES) >= 100
 
 
 def test_float16_overflow_is_stored_finite(world, tmp_path):

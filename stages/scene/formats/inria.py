@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from stages.core.errors import GoiError
-from stages.scene.cameras import Camera, checked, matrix, num, pixels, stem
+from stages.scene.cameras import Camera, checked, matrix, num, pixels, stem, view_name_ok
 
 
 def read_inria(path: Path, data: object) -> list[Camera]:
@@ -19,18 +19,20 @@ def read_inria(path: Path, data: object) -> list[Camera]:
         where = f"{path} [camera {i}]"
         if not isinstance(c, dict):
             raise GoiError(f"{where}: not an object")
-        if "img_name" not in c:
-            raise GoiError(f"{where}: field 'img_name' is missing")
+        name = c.get("img_name")
+        if not isinstance(name, str) or not view_name_ok(stem(name)):
+            raise GoiError(
+                f"{where}: field 'img_name' must be an image file name (a non-empty string "
+                f"without control characters); found {str(name)[:60]!r}"
+            )
         c2w = matrix(c, "rotation", (3, 3), where)  # camera-to-world, OpenCV axes
-        pos = matrix({"p": [c.get("position")]}, "p", (1, 3), where)[0] if "position" in c else None
-        if pos is None:
-            raise GoiError(f"{where}: field 'position' is missing")
+        pos = matrix(c, "position", (3,), where)
         w, h = pixels(c, "width", where), pixels(c, "height", where)
         R = c2w.T
         cams.append(
             checked(
                 Camera(
-                    stem(str(c["img_name"])),
+                    stem(name),
                     w,
                     h,
                     num(c, "fx", where),
@@ -39,7 +41,7 @@ def read_inria(path: Path, data: object) -> list[Camera]:
                     h / 2,
                     R,
                     -R @ pos,
-                    str(c["img_name"]),
+                    name,
                 ),
                 where,
             )
