@@ -11,17 +11,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
+
 from stages.core.artifacts import input_digest
 from stages.core.files import make_dir
 from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
+from stages.query.lifting import LiftParams
 from stages.query.masks import MODES, MaskParams, MaskRun, default_cameras, render_masks
 from stages.query.osh import HyperplaneParams, threshold_plane
 from stages.query.prompts import check_prompt, safe_name, text_embedding
 from stages.query.res import res_source
 from stages.query.selection import Selection, select, write_selection
+from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.field import load_field_for
@@ -88,9 +92,11 @@ def run_query(
     run: QueryRun,
     renderer: SemanticRenderer | None = None,
     report: Report = SILENT,
+    lp: LiftParams | None = None,
 ) -> QueryResult:
     prompt = check_prompt(prompt)
-    for params in (hp, qp, run):
+    lp = lp or LiftParams()
+    for params in (hp, qp, run, lp):
         check_params(params)
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
@@ -101,6 +107,10 @@ def run_query(
     if run.export == "highlight":
         parse_color(run.color, "--color")
     out = make_dir(run.out, "--out")
+    if lp.lift:
+        return _run_lifted(
+            scene, field_path, prompt, text, sources, hp, lp, run, cams, renderer, report
+        )
     if qp.mode == "hyperplane":
         masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
         plane, cached = fit_hyperplane(
@@ -144,3 +154,42 @@ def run_query(
     return QueryResult(
         prompt, pdir, cached, masks_written, sel_path, ply, int(sel.sum()), dict(plane.info)
     )
+
+
+def _run_lifted(
+    scene: Scene,
+    field_path: Path,
+    prompt: str,
+    text: np.ndarray,
+    sources: PromptSources,
+    hp: HyperplaneParams,
+    lp: LiftParams,
+    run: QueryRun,
+    cams: list[Camera],
+    renderer: SemanticRenderer,
+    report: Report,
+) -> QueryResult:
+    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lifted)."""
+    from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
+
+    masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
+    ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, report)
+    pdir = Path(run.out) / safe_name(prompt)
+    written = write_masks(renderer, ans.selected, cams, pdir / "masks", True, True, report)
+    sel_path = write_lifted_selection(pdir / "selection.h5", ans, scene, field_path, lp, True)
+    ply = None
+    if run.export != "none" and (ans.selected.any() or run.export != "subset"):
+        edit = PlyEditParams(
+            invert=run.export == "invert",
+            highlight=run.color if run.export == "highlight" else None,
+        )
+        selection = Selection(ans.selected, prompt, "lifted", scene.ply_digest())
+        ply, _ = export_ply(
+            scene.gaussians,
+            selection,
+            scene.ply_digest(),
+            edit,
+            PlyExportRun(pdir / f"{safe_name(prompt)}.ply", force=True),
+        )
+    info = {"views": ans.views, "chosen_by": ans.chosen_by}
+    return QueryResult(prompt, pdir, False, written, sel_path, ply, int(ans.selected.sum()), info)
