@@ -146,9 +146,7 @@ class TfccModel:
         views: list[str],
     ) -> Prediction:
         src = source if lp.res_views is None else RoomModel(source)
-        ans = lift_prompt(
-            self.renderer.rast, self.field, train, src, prompt, text, hp, lp, self.visibility
-        )
+        ans = lift_prompt(self.renderer, train, src, prompt, text, hp, lp, self.visibility)
         masks = lifted_masks(self.renderer.rast, ans.selected, [self.cams[v] for v in views])
         rec = ans.record(lp)
         info = {

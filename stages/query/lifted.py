@@ -1,8 +1,8 @@
 """The lifted query of one prompt: which views, their RES masks lifted onto the Gaussians, the
 OSH fitted on that evidence, the fused 3D selection, and masks rendered from it.
 
-    answer = lift_prompt(rast, field, train_cams, res_source, prompt, text, hp, lp)
-    masks = lifted_masks(rast, answer.selected, cams)
+    answer = lift_prompt(renderer, train_cams, res_source, prompt, text, hp, lp)
+    masks = lifted_masks(renderer.rast, answer.selected, cams)
 
 Views: with mask files every file of the prompt is lifted by default (more views out-vote
 per-view RES errors), or K of them with --res-views K; when a RES model has to run, K views
@@ -36,6 +36,7 @@ from stages.query.views import COVER, next_view, provisional
 from stages.render.lift import lift_mask, selection_mask
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
+from stages.semantics.decode import SemanticRenderer
 from stages.semantics.field import Field
 
 
@@ -134,8 +135,7 @@ def _answer(
 
 
 def lift_prompt(
-    rast: Rasterizer,
-    field: Field,
+    renderer: SemanticRenderer,
     train: list[Camera],
     source: MaskSource,
     prompt: str,
@@ -148,6 +148,7 @@ def lift_prompt(
     """The lifted answer of one prompt (see the module doc). `visibility` may give a cached
     view_visibility (the eval shares it between prompts)."""
     check_params(lp)
+    rast, field = renderer.rast, renderer.field
     if lp.res_views is not None and lp.res_views > len(train):
         raise GoiError(
             f"--res-views: {lp.res_views} is more than the scene's {len(train)} training views"
@@ -158,7 +159,9 @@ def lift_prompt(
             f"--res-masks: {source.source} holds masks for none of the {len(train)} training "
             f"views (e.g. {train[0].name}.png): do the masks belong to this scene?"
         )
-    entry = field.decode_index(field.features)  # [G]
+    # [G] each Gaussian's codebook entry, by the renderer's kernel: field.decode_index would
+    # build the [G, N] logits (360 MB for 300k Gaussians and 300 entries)
+    entry = renderer.decode(field.features)
     files = isinstance(source, ResFiles)
     if files and lp.res_views is None:
         evidence = [

@@ -34,10 +34,7 @@ def answer_prompt(
     lp: LiftParams,
     report: Report = SILENT,
 ) -> LiftedAnswer:
-    ans = lift_prompt(
-        renderer.rast, renderer.field, scene.views("train"), source, prompt, text, hp, lp,
-        report=report,
-    )  # fmt: skip
+    ans = lift_prompt(renderer, scene.views("train"), source, prompt, text, hp, lp, report=report)
     rec = ans.record(lp)
     report.log(
         f"lifted {len(rec['views'])} views ({rec['chosen_by']}): {int(ans.selected.sum())} "

@@ -12,6 +12,7 @@ from stages.query.views import next_view, provisional
 from stages.render.lift import selection_mask
 from stages.render.rasterizer import Rasterizer
 from stages.scene.gaussians import load_ply
+from stages.semantics.decode import SemanticRenderer
 from stages.semantics.field import Field
 from stages.testing.synthetic import look_at, ring_cameras, room_vertex
 from tests.helpers import write_ply
@@ -27,7 +28,7 @@ def room(tmp_path_factory):
     g = load_ply(write_ply(d / "room.ply", v))
     rast = Rasterizer.from_gaussians(g)
     cams = ring_cameras(16, 96, 72, radius=1.9, height_m=1.5)
-    return {"rast": rast, "ids": ids, "cams": cams, "dir": d}
+    return {"rast": rast, "ids": ids, "cams": cams, "dir": d, "g": g}
 
 
 def _gt_mask(rast, cam, sel):
@@ -177,13 +178,29 @@ def test_lift_prompt_from_mask_files(room):
     _write_masks(room, d, target, names)
     src = ResFiles(d.parent, "p", "the box")
     hp = HyperplaneParams()
-    ans = lift_prompt(rast, field, room["cams"], src, "the box", text, hp, LiftParams(lift=True))
+    ans = lift_prompt(
+        SemanticRenderer(room["g"], field),
+        room["cams"],
+        src,
+        "the box",
+        text,
+        hp,
+        LiftParams(lift=True),
+    )
     assert ans.views == names and ans.chosen_by == "all mask files"
     assert _iou(ans.selected, target) >= 0.95
     rec = ans.record(LiftParams(lift=True))
     assert [v["view"] for v in rec["per_view"]] == names
     # K of the files, chosen by coverage
-    k3 = lift_prompt(rast, field, room["cams"], src, "the box", text, hp, LiftParams(res_views=3))
+    k3 = lift_prompt(
+        SemanticRenderer(room["g"], field),
+        room["cams"],
+        src,
+        "the box",
+        text,
+        hp,
+        LiftParams(res_views=3),
+    )
     assert len(k3.views) == 3 and set(k3.views) <= set(names)
     assert _iou(k3.selected, target) >= 0.9
     # masks rendered from the selection agree with the object's own silhouette
@@ -194,7 +211,7 @@ def test_lift_prompt_from_mask_files(room):
 
 
 def test_lift_prompt_bad_inputs(room, tmp_path):
-    rast, ids = room["rast"], room["ids"]
+    ids = room["ids"]
     field = _perfect_field(ids)
     text = field.unit_codebook()[TARGET]
     d = tmp_path / "res" / "p"
@@ -204,8 +221,22 @@ def test_lift_prompt_bad_inputs(room, tmp_path):
     cv2.imwrite(str(d / "nope.png"), np.zeros((72, 96), np.uint8))
     src = ResFiles(d.parent, "p", "x")
     with pytest.raises(GoiError, match="none of the 16 training views"):
-        lift_prompt(rast, field, room["cams"], src, "x", text, HyperplaneParams(), LiftParams())
+        lift_prompt(
+            SemanticRenderer(room["g"], field),
+            room["cams"],
+            src,
+            "x",
+            text,
+            HyperplaneParams(),
+            LiftParams(),
+        )
     with pytest.raises(GoiError, match="--res-views: 17 is more than"):
         lift_prompt(
-            rast, field, room["cams"], src, "x", text, HyperplaneParams(), LiftParams(res_views=17)
+            SemanticRenderer(room["g"], field),
+            room["cams"],
+            src,
+            "x",
+            text,
+            HyperplaneParams(),
+            LiftParams(res_views=17),
         )
