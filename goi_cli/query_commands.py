@@ -100,7 +100,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
             f"entries positive): {run.out}"
         )
         return
-    build(LiftParams, kw)
+    build(LiftParams, kw).check()
     src = build(PromptSources, kw)
     p, run = build(HyperplaneParams, kw), build(HyperplaneRun, kw)
     prompt = check_prompt(prompt)
@@ -163,8 +163,8 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_f
             )
         click.echo(f"masks ({len(written)} views, lifted from {len(ans.views)} views): {run.out}")
         return
-    for cls in (PromptSources, LiftParams):
-        build(cls, kw)
+    build(PromptSources, kw)
+    build(LiftParams, kw).check()
     f = load_field_for(field, scene.ply_digest())
     plane = load_plane(_need_plane(hyperplanes), prompt, field, f.codebook.shape[0])
     renderer = SemanticRenderer(scene.gaussians, f)
@@ -216,8 +216,8 @@ def select_cmd(
             f"{ans.selected.size} Gaussians): {out}"
         )
         return
-    for cls in (PromptSources, LiftParams):
-        build(cls, kw)
+    build(PromptSources, kw)
+    build(LiftParams, kw).check()
     hyperplanes = _need_plane(hyperplanes)
     f = load_field_for(field, scene.ply_digest())
     plane = plane_for(

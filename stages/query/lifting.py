@@ -40,6 +40,7 @@ from typing import Annotated
 
 import numpy as np
 
+from stages.core.errors import GoiError
 from stages.core.params import FRACTION, NON_NEGATIVE, Range
 from stages.query.osh import Counts
 
@@ -72,6 +73,12 @@ class LiftParams:
 
     def config(self) -> dict:
         return asdict(self)
+
+    def check(self) -> None:
+        """The lifted-mode options mean nothing without --lift: refuse them rather than
+        ignore them."""
+        if not self.lift and self.res_views is not None:
+            raise GoiError("--res-views: only with --lift (it picks the views to lift)")
 
 
 @dataclass

@@ -240,3 +240,9 @@ def test_lift_prompt_bad_inputs(room, tmp_path):
             HyperplaneParams(),
             LiftParams(res_views=17),
         )
+
+
+def test_res_views_needs_lift():
+    LiftParams(lift=True, res_views=3).check()
+    with pytest.raises(GoiError, match="only with --lift"):
+        LiftParams(res_views=3).check()
