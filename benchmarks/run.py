@@ -322,6 +322,7 @@ def suite_query(repeat: int, tmp: Path) -> dict[str, float]:
     out["cached_prompt_over_rgb_render"] = (
         out["cached_prompt_s_640x480_300k"] / out["rgb_render_s_640x480_300k"]
     )
+    out.update(_lifted(renderer, train, novel, text, tmp, repeat))
     return out
 
 
@@ -335,6 +336,40 @@ def suite_models(repeat: int, tmp: Path) -> dict[str, float]:
     from benchmarks.models import suite_models as models
 
     return models(repeat, tmp, median_s)
+
+
+def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, float]:  # noqa: ANN001
+    """The lifted mode: one view's mask lifted (projection, binning and the tile walk), and a
+    prompt with K = 8 mask files given (lifting all 8, fusion, the OSH on the evidence, and the
+    first mask rendered from the 3D selection)."""
+    import cv2
+
+    from stages.query.lifted import lift_prompt, lifted_masks, view_evidence
+    from stages.query.lifting import LiftParams
+    from stages.query.osh import HyperplaneParams
+    from stages.query.res import ResFiles
+
+    res8 = tmp / "res8"
+    res8.mkdir(exist_ok=True)
+    for i, cam in enumerate(train):
+        m = np.zeros((480, 640), np.uint8)
+        cv2.circle(m, (320 + 20 * i, 240), 90, 255, -1)
+        cv2.imwrite(str(res8 / f"{cam.name}.png"), m)
+    src = ResFiles(res8, None, "p")
+    mask = src.mask(train[0])
+    rast = renderer.rast
+
+    def prompt() -> None:
+        lp = LiftParams(lift=True)
+        ans = lift_prompt(renderer, train, src, "p", text, HyperplaneParams(), lp)
+        lifted_masks(rast, ans.selected, [novel])
+
+    return {
+        "lift_s_per_view_640x480_300k": median_s(
+            lambda: view_evidence(rast, train[0], mask), repeat
+        ),
+        "lifted_prompt_s_640x480_300k": median_s(prompt, repeat),
+    }
 
 
 SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {

@@ -17,6 +17,7 @@ from goi_cli.report import TERMINAL
 from stages.core.staging import staged_outputs
 from stages.query.export_ply import PlyEditParams, PlyExportRun
 from stages.query.hyperplanes import HyperplaneRun
+from stages.query.lifting import LiftParams
 from stages.query.masks import MaskParams, MaskRun
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryRun
@@ -28,8 +29,50 @@ prompt_option = click.option("--prompt", required=True, help="The text query.")
 hyperplanes_option = click.option(
     "--hyperplanes", type=EXISTING, required=True, help="Hyperplanes artifact (fit-hyperplane)."
 )
+#: select / render-mask: the plane is not needed with --lift (it answers from RES masks).
+plane_or_lift_option = click.option(
+    "--hyperplanes",
+    type=EXISTING,
+    help="Hyperplanes artifact (fit-hyperplane); not used with --lift.",
+)
 #: Where the prompt's embedding and RES masks come from: the fields of PromptSources.
 source_options = dataclass_options(PromptSources)
+lift_options = dataclass_options(LiftParams)
+
+
+def _lifted_answer(scene, field: Path, prompt: str, kw: dict):  # noqa: ANN001, ANN202
+    """The lifted answer of a prompt for select / render-mask / fit-hyperplane --lift."""
+    from stages.query.lifted_query import answer_prompt
+    from stages.query.prompts import check_prompt, text_embedding
+    from stages.query.res import res_source
+    from stages.semantics.decode import SemanticRenderer
+    from stages.semantics.field import load_field_for
+
+    src, lp = build(PromptSources, kw), build(LiftParams, kw)
+    hp = build(HyperplaneParams, kw) if "loss" in kw else HyperplaneParams()
+    prompt = check_prompt(prompt)
+    f = load_field_for(field, scene.ply_digest())
+    text, _ = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
+    renderer = SemanticRenderer(scene.gaussians, f)
+    masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer)
+    return answer_prompt(scene, renderer, prompt, text, masks, hp, lp, TERMINAL), renderer, lp
+
+
+def _source_paths(kw: dict) -> list[Path | None]:
+    """The prompt's input files (embeddings, bundle, RES masks): never an output."""
+    return [kw.get("text_embeddings"), kw.get("bundle"), kw.get("res_masks")]
+
+
+def _scene_files(scene) -> list[Path]:  # noqa: ANN001
+    return [scene.ply_path, *scene.camera_files]
+
+
+def _need_plane(hyperplanes: Path | None) -> Path:
+    from stages.core.errors import GoiError
+
+    if hyperplanes is None:
+        raise GoiError("--hyperplanes is needed (or --lift, which answers from the RES masks)")
+    return hyperplanes
 
 
 @click.command("fit-hyperplane")
@@ -39,6 +82,7 @@ source_options = dataclass_options(PromptSources)
 @source_options
 @dataclass_options(HyperplaneRun)
 @dataclass_options(HyperplaneParams)
+@lift_options
 def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     """Fit the prompt's Optimizable Semantic-space Hyperplane against RES masks (paper 3.5).
 
@@ -46,16 +90,30 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     loss (or the authors' hinge loss) until the plane's mask agrees with the RES mask. The plane
     is added to the hyperplanes artifact; the same prompt, field and masks are never refitted.
     When the bundle's RES model makes the masks, the ones used are written beside the artifact
-    (<out's directory>/<prompt>/res/<view>.png).
+    (<out's directory>/<prompt>/res/<view>.png). With --lift the plane is fitted on the RES
+    masks of many views lifted onto the Gaussians.
     """
     from stages.core.files import refuse_inputs
-    from stages.query.hyperplanes import fit_hyperplane, res_masks_dir, wrote_res_masks
+    from stages.query.hyperplanes import add_plane, fit_hyperplane, res_masks_dir, wrote_res_masks
     from stages.query.prompts import check_prompt, text_embedding
     from stages.query.res import res_source
     from stages.semantics.decode import SemanticRenderer
     from stages.semantics.field import load_field_for
 
     scene = load_scene_from(kw)
+    if kw["lift"]:
+        run = build(HyperplaneRun, kw)
+        refuse_inputs({"--out": run.out}, [field, *_source_paths(kw), *_scene_files(scene)])
+        ans, _, lp = _lifted_answer(scene, field, prompt, kw)
+        with staged_outputs():
+            add_plane(run.out, ans.plane, field, {**ans.record(lp), "mode": "lifted"})
+        n = int(ans.plane.positive.sum())
+        click.echo(
+            f"hyperplane (lifted, {len(ans.views)} views, {n} of {ans.plane.scores.size} "
+            f"entries positive): {run.out}"
+        )
+        return
+    build(LiftParams, kw).check()
     src = build(PromptSources, kw)
     p, run = build(HyperplaneParams, kw), build(HyperplaneRun, kw)
     prompt = check_prompt(prompt)
@@ -81,7 +139,9 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 @scene_options
 @field_option
 @prompt_option
-@hyperplanes_option
+@plane_or_lift_option
+@source_options
+@lift_options
 @click.option(
     "--camera-file",
     type=click.Path(path_type=Path),
@@ -90,8 +150,10 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 )
 @dataclass_options(MaskRun)
 @dataclass_options(MaskParams)
-def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **kw) -> None:  # noqa: ANN001
-    """Render the prompt's binary mask (PNG) and an overlay on the rendered RGB at any views."""
+def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_file, **kw) -> None:  # noqa: ANN001
+    """Render the prompt's binary mask (PNG) and an overlay on the rendered RGB at any views.
+    With --lift the mask is the 3D selection lifted from RES masks, seen from the view (a pixel
+    is in when the selected Gaussians carry more than half of its blend weight)."""
     from stages.query.hyperplanes import load_plane
     from stages.query.masks import check_mask_outputs, default_cameras, pick_cameras, render_masks
     from stages.scene.formats import load_cameras
@@ -100,16 +162,28 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
 
     scene = load_scene_from(kw)
     p, run = build(MaskParams, kw), build(MaskRun, kw)
-    f = load_field_for(field, scene.ply_digest())
-    n_entries, dim = f.codebook.shape
-    plane = load_plane(hyperplanes, prompt, field, n_entries, dim)
     if camera_file is not None:
         cams = load_cameras(camera_file)
         chosen = pick_cameras({c.name: c for c in cams}, cams, run.views)
     else:
         chosen = default_cameras(scene, run.views)
-    inputs = [field, hyperplanes, camera_file, scene.ply_path, *scene.camera_files]
+    inputs = [field, hyperplanes, camera_file, *_source_paths(kw), *_scene_files(scene)]
     check_mask_outputs(run.out, chosen, not run.no_overlay, run.force, inputs)
+    if kw["lift"]:
+        from stages.query.lifted_query import write_masks
+
+        ans, renderer, _ = _lifted_answer(scene, field, prompt, kw)
+        with staged_outputs():
+            written = write_masks(
+                renderer, ans.selected, chosen, run.out, not run.no_overlay, run.force, TERMINAL
+            )
+        click.echo(f"masks ({len(written)} views, lifted from {len(ans.views)} views): {run.out}")
+        return
+    build(PromptSources, kw)
+    build(LiftParams, kw).check()
+    f = load_field_for(field, scene.ply_digest())
+    n_entries, dim = f.codebook.shape
+    plane = load_plane(_need_plane(hyperplanes), prompt, field, n_entries, dim)
     renderer = SemanticRenderer(scene.gaussians, f)
     with staged_outputs():  # every mask and overlay, or none
         written = render_masks(renderer, plane, chosen, p, run, TERMINAL)
@@ -120,7 +194,9 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
 @scene_options
 @field_option
 @prompt_option
-@hyperplanes_option
+@plane_or_lift_option
+@source_options
+@lift_options
 @click.option(
     "--mode",
     type=click.Choice(("hyperplane", "threshold")),
@@ -131,10 +207,11 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path, camera_file, **
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Selection artifact.")
 @click.option("--force", is_flag=True, help="Overwrite an existing output.")
 def select_cmd(
-    field: Path, prompt: str, hyperplanes: Path, mode: str, out: Path, force: bool, **kw
+    field: Path, prompt: str, hyperplanes: Path | None, mode: str, out: Path, force: bool, **kw
 ) -> None:
     """Select the 3D Gaussians of interest: those whose decoded feature is on the plane's
-    positive side. Writes a selection artifact for export-ply."""
+    positive side (with --lift: the RES masks of many views lifted onto the Gaussians and
+    fused with the field). Writes a selection artifact for export-ply."""
     from stages.core.artifacts import check_writable, input_digest
     from stages.core.files import refuse_inputs
     from stages.query.hyperplanes import load_plane
@@ -145,7 +222,20 @@ def select_cmd(
 
     scene = load_scene_from(kw)
     check_writable(out, force, "--out")
-    refuse_inputs({"--out": out}, [field, hyperplanes, scene.ply_path, *scene.camera_files])
+    refuse_inputs({"--out": out}, [field, hyperplanes, *_source_paths(kw), *_scene_files(scene)])
+    if kw["lift"]:
+        from stages.query.lifted_query import write_lifted_selection
+
+        ans, _, lp = _lifted_answer(scene, field, prompt, kw)
+        write_lifted_selection(out, ans, scene, field, lp, force)
+        click.echo(
+            f"selection (lifted from {len(ans.views)} views, {int(ans.selected.sum())} of "
+            f"{ans.selected.size} Gaussians): {out}"
+        )
+        return
+    build(PromptSources, kw)
+    build(LiftParams, kw).check()
+    hyperplanes = _need_plane(hyperplanes)
     f = load_field_for(field, scene.ply_digest())
     n_entries, dim = f.codebook.shape
     plane = plane_for(load_plane(hyperplanes, prompt, field, n_entries, dim), mode, f, THRESHOLD)
@@ -187,6 +277,7 @@ def export_ply_cmd(selection: Path, field: Path | None, **kw) -> None:
 @dataclass_options(QueryRun)
 @dataclass_options(QueryParams)
 @dataclass_options(HyperplaneParams)
+@lift_options
 def query_cmd(field: Path, prompt: str, **kw) -> None:
     """Query the scene with a text prompt: fit the hyperplane unless cached, render masks,
     select the Gaussians of interest and export them as a PLY. Prints where everything went."""
@@ -195,10 +286,13 @@ def query_cmd(field: Path, prompt: str, **kw) -> None:
     scene = load_scene_from(kw)
     src = build(PromptSources, kw)
     hp, qp, run = build(HyperplaneParams, kw), build(QueryParams, kw), build(QueryRun, kw)
+    lp = build(LiftParams, kw)
     with staged_outputs():  # masks, selection, PLY and the plane appear together, or not at all
-        r = run_query(scene, field, prompt, src, hp, qp, run, report=TERMINAL)
+        r = run_query(scene, field, prompt, src, hp, qp, run, report=TERMINAL, lp=lp)
     click.echo(f"prompt:     {r.prompt}")
-    if qp.mode == "threshold":
+    if lp.lift:
+        click.echo(f"lifted:     {len(r.info['views'])} views ({r.info['chosen_by']})")
+    elif qp.mode == "threshold":
         click.echo(f"hyperplane: none (--mode threshold: cosine > {hp.threshold})")
     else:
         state = "cached" if r.cached else "fitted"

@@ -72,6 +72,9 @@ def _expand(f: h5py.File, pattern: str) -> list[tuple[str, tuple[str, ...]]]:
         last = i == len(parts) - 1
         nxt: list[tuple[str, tuple[str, ...]]] = []
         for prefix, binding in found:
+            if prefix.endswith("\0missing"):  # below a missing group: missing too
+                nxt.append((prefix[: -len("\0missing")] + f"/{part}\0missing", binding))
+                continue
             parent = f[prefix] if prefix else f
             if not isinstance(parent, h5py.Group):
                 continue

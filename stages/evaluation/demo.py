@@ -1,7 +1,9 @@
 """`goi demo`: the main job end to end on the scene shipped with goi (goi_cli/demo_scene).
 
-extract (import) -> init-codebook -> fit-field -> query for each prompt, then an index.html with
-the overlays per prompt and their IoU against the scene's ground truth.
+extract (import) -> init-codebook -> fit-field -> query for each prompt, both as the paper does
+(one RES view, OSH) and lifted (every RES mask of the prompt lifted onto the Gaussians, goi's
+added mode), then an index.html with both answers' overlays per prompt and their IoU against
+the scene's ground truth.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from stages.core.report import SILENT, Report
 from stages.evaluation.metrics import image_scores, mean_scores
 from stages.evaluation.report import esc, rel, res_row, write_page
 from stages.evaluation.room import Prompt, load_prompts
+from stages.query.lifting import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryResult, QueryRun, run_query
 from stages.query.prompts import safe_name, view_file_name
@@ -59,6 +62,8 @@ class DemoAnswer:
     prompt: Prompt
     result: QueryResult
     iou: float | None  # mean test-view IoU against the scene's ground truth
+    lifted: QueryResult | None = None  # the same prompt answered with --lift
+    lifted_iou: float | None = None
 
 
 @dataclass
@@ -120,27 +125,35 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
     answers = []
     for prompt in prompts:
         report.log(f"demo: query {prompt.text!r}")
-        r = run_query(
-            scene,
-            field_path,
-            prompt.text,
-            PromptSources(
-                scene_dir / "text_embeddings.json",
-                run.bundle,
-                None if run.bundle else scene_dir / "res",
-                prompt.id,
-            ),
-            HyperplaneParams(),
-            QueryParams(),
-            QueryRun(out=out / "queries"),
-            renderer=renderer,
+        sources = PromptSources(
+            scene_dir / "text_embeddings.json",
+            run.bundle,
+            None if run.bundle else scene_dir / "res",
+            prompt.id,
         )
-        scores = []
-        for v in prompt.test_views:
-            gt = read_mask(scene_dir / "eval" / "masks" / prompt.id / f"{v}.png")
-            pred = read_mask(r.directory / "masks" / f"{view_file_name(v)}.png")
-            scores.append(image_scores(pred, gt))
-        answers.append(DemoAnswer(prompt, r, mean_scores(scores).iou if scores else None))
+        both = [
+            run_query(
+                scene,
+                field_path,
+                prompt.text,
+                sources,
+                HyperplaneParams(),
+                QueryParams(),
+                QueryRun(out=out / name),
+                renderer=renderer,
+                lp=LiftParams(lift=name == "lifted"),
+            )
+            for name in ("queries", "lifted")
+        ]
+        ious = []
+        for r in both:
+            scores = []
+            for v in prompt.test_views:
+                gt = read_mask(scene_dir / "eval" / "masks" / prompt.id / f"{v}.png")
+                pred = read_mask(r.directory / "masks" / f"{view_file_name(v)}.png")
+                scores.append(image_scores(pred, gt))
+            ious.append(mean_scores(scores).iou if scores else None)
+        answers.append(DemoAnswer(prompt, both[0], ious[0], both[1], ious[1]))
     page = out / "index.html"
     _index(page, answers, scene.views("test"), _res_masks(answers, renderer, scene))
     return DemoResult(page, field_path, answers)
@@ -176,7 +189,10 @@ def _index(
     body = [
         "<p>goi found the 3D Gaussians of interest of each prompt in the demo scene (a living "
         "room, 121k Gaussians). Masks are rendered on test views the field never saw: red is "
-        "goi's mask on its own rendering. IoU is against the scene's ground truth."
+        "goi's mask on its own rendering. IoU is against the scene's ground truth. Two answers "
+        "per prompt: the paper's (the OSH fitted on one RES view, masks decoded per pixel) and "
+        "goi's lifted mode (every RES mask of the prompt lifted onto the Gaussians and fused "
+        "with the field; masks rendered from that 3D selection)."
         + (
             " RES: the masks the bundle's RES model made on goi's rendering, which the "
             "hyperplane was fitted on."
@@ -184,41 +200,51 @@ def _index(
             else ""
         )
         + "</p>"
-        "<table><tr><th class='l'>prompt</th><th>IoU</th><th>Gaussians</th>"
-        "<th class='l'>PLY</th></tr>"
+        "<table><tr><th class='l'>prompt</th><th class='l'>answer</th><th>IoU</th>"
+        "<th>Gaussians</th><th class='l'>PLY</th></tr>"
     ]
     for a in answers:
-        r = a.result
-        ply = f"<a href='{rel(r.ply, page)}'>{esc(r.ply.name)}</a>" if r.ply else "-"
-        iou = "-" if a.iou is None else f"{a.iou:.3f}"
-        body.append(
-            f"<tr><td class='l'>{esc(r.prompt)}</td><td>{iou}</td><td>{r.n_selected}</td>"
-            f"<td class='l'>{ply}</td></tr>"
-        )
+        for label, r, iou_ in _both(a):
+            ply = f"<a href='{rel(r.ply, page)}'>{esc(r.ply.name)}</a>" if r.ply else "-"
+            iou = "-" if iou_ is None else f"{iou_:.3f}"
+            body.append(
+                f"<tr><td class='l'>{esc(r.prompt)}</td><td class='l'>{label}</td><td>{iou}</td>"
+                f"<td>{r.n_selected}</td><td class='l'>{ply}</td></tr>"
+            )
     body.append("</table>")
     for a in answers:
-        r = a.result
-        body.append(f"<h2>{esc(r.prompt)}</h2>")
+        body.append(f"<h2>{esc(a.result.prompt)}</h2>")
         if a.prompt.id in res:
             files = page.with_name(page.stem + "_files")
             make_dir(files, "--out")
             body.append(res_row(res[a.prompt.id], files, page, safe_name(a.prompt.id)))
-        body.append("<div>")
-        for cam in views:
-            img = r.directory / "masks" / f"{view_file_name(cam.name)}.overlay.png"
-            if img.is_file():
-                body.append(
-                    f"<figure><img src='{rel(img, page)}' alt='{esc(cam.name)}'>"
-                    f"{esc(cam.name)}</figure>"
-                )
-        body.append("</div>")
+        for label, r, _ in _both(a):
+            body.append(f"<div><b>{label}</b><br>")
+            for cam in views:
+                img = r.directory / "masks" / f"{view_file_name(cam.name)}.overlay.png"
+                if img.is_file():
+                    body.append(
+                        f"<figure><img src='{rel(img, page)}' alt='{esc(cam.name)}'>"
+                        f"{esc(cam.name)}</figure>"
+                    )
+            body.append("</div>")
     write_page(page, "goi demo", "".join(body))
+
+
+def _both(a: DemoAnswer) -> list[tuple[str, QueryResult, float | None]]:
+    out = [("paper (one view)", a.result, a.iou)]
+    if a.lifted is not None:
+        out.append(("lifted", a.lifted, a.lifted_iou))
+    return out
 
 
 def summary_lines(res: DemoResult) -> list[str]:
     lines = []
     for a in res.answers:
-        r = a.result
-        iou = "  -  " if a.iou is None else f"{a.iou:.3f}"
-        lines.append(f"  {r.prompt[:32]:32s} IoU {iou}  {r.n_selected:6d} Gaussians  {r.ply or ''}")
+        for label, r, iou_ in _both(a):
+            iou = "  -  " if iou_ is None else f"{iou_:.3f}"
+            lines.append(
+                f"  {r.prompt[:32]:32s} {label:16s} IoU {iou}  {r.n_selected:6d} Gaussians  "
+                f"{r.ply or ''}"
+            )
     return lines

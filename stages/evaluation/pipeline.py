@@ -9,6 +9,7 @@ the ground truth (2D on the test views, 3D against gaussian_ids.npy), and write 
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -19,9 +20,16 @@ from typing import Annotated
 import h5py
 import numpy as np
 
-from schemas import validate_json
+from schemas import current_version, validate_json
 from stages import __version__
-from stages.core.artifacts import check_writable, command_line, write_json
+from stages.core.artifacts import (
+    check_writable,
+    command_line,
+    input_digest,
+    open_h5,
+    sha256_files,
+    write_json,
+)
 from stages.core.errors import GoiError
 from stages.core.files import check_output_file, check_output_name, make_dir, refuse_inputs
 from stages.core.params import AT_LEAST_1, COSINE, SEED, Range, check_params
@@ -39,6 +47,7 @@ from stages.evaluation.variants import (
     render_direct,
 )
 from stages.query.hyperplanes import HyperplaneRun
+from stages.query.lifting import LiftParams
 from stages.query.osh import THRESHOLD, HyperplaneParams
 from stages.query.res import ResFiles, ResModel, ResSource
 from stages.render.rasterizer import Rasterizer
@@ -50,7 +59,7 @@ from stages.semantics.extract import ExtractParams, ExtractRun, feature_files, i
 from stages.semantics.feature_files import load_feature_file
 from stages.semantics.field import load_field
 from stages.semantics.field_model import FieldParams
-from stages.semantics.fit_field import FieldRun, fit_field
+from stages.semantics.fit_field import FieldRun, field_inputs, fit_field
 from stages.semantics.kmeans import even_subset
 
 
@@ -64,6 +73,12 @@ class EvalParams:
     """The fixed cosine threshold (goi's default; not to be tuned on test masks)."""
     seed: Annotated[int, SEED] = 0
     """Random seed of every stage."""
+    res_views: Annotated[int | None, Range(ge=1)] = None
+    """Variant lifted: K views chosen by goi, the room's mask files standing in for a RES
+    model (a view without a file answers empty). Default: every mask file of the prompt."""
+    min_evidence: Annotated[float, Range(ge=0)] = LiftParams.min_evidence
+    """Variant lifted: Gaussians with less lifted blend weight (pixels' worth) than this take
+    the semantic decision (codebook entry / OSH)."""
 
 
 @dataclass
@@ -81,7 +96,7 @@ class EvalRun:
     """Model bundle whose RES (docs/models.md) makes the RES masks on goi's rendering of the
     training views, instead of --res-masks; the HTML page shows the masks the fits used."""
     variants: str = ",".join(VARIANTS)
-    """Comma-separated variants to run."""
+    """Comma-separated variants to run (lifted is goi's added mode, the others the paper's)."""
     force: bool = False
     """Overwrite existing report files."""
 
@@ -128,27 +143,32 @@ def _fit_models(
 ) -> tuple[TfccModel | None, DirectModel | None]:
     """Features, codebook and the fields the variants need, with their test views rendered."""
     scene = room.scene
+    feats, cb = work / "features.h5", work / "codebook.h5"
     with timer("extract"):
-        feats = import_features(
-            scene, features, ExtractParams(), ExtractRun(work / "features.h5", force=True), report
-        )
+        files = feature_files(scene, features, "train")
+        digest = sha256_files(list(files.values()))
+        want = {"cameras": scene.cameras_digest(), "features_dir": digest}
+        if not _reusable(feats, "goi.features", want, report):
+            import_features(scene, features, ExtractParams(), ExtractRun(feats, force=True), report)
     with timer("init_codebook"):
-        cb = init_codebook(
-            feats,
-            CodebookParams(entries=p.entries, seed=p.seed),
-            CodebookRun(work / "codebook.h5", force=True),
-            report,
-        )
+        cp = CodebookParams(entries=p.entries, seed=p.seed)
+        same = {"n_entries": cp.entries, "seed": cp.seed}
+        if not _reusable(cb, "goi.codebook", input_digest("features", feats), report, same):
+            init_codebook(feats, cp, CodebookRun(cb, force=True), report)
     kinds = {FIELD_KIND[v] for v in variants}
     fitted = {}
     for kind in ("tfcc", "direct"):
         if kind not in kinds:
             continue
-        report.log(f"eval: fit-field ({kind}, {p.iterations} iterations)")
         fp = FieldParams(iterations=p.iterations, no_tfcc=kind == "direct", seed=p.seed)
-        run = FieldRun(
-            work / f"field_{kind}.h5", cache=work / "blend_cache.h5", checkpoint_every=0, force=True
-        )
+        path = work / f"field_{kind}.h5"
+        want = field_inputs(scene, feats, cb)
+        config = json.dumps(json.loads(json.dumps(fp.config())), sort_keys=True)
+        if _reusable(path, "goi.field", want, report, {"config": config}):
+            fitted[kind] = path
+            continue
+        report.log(f"eval: fit-field ({kind}, {p.iterations} iterations)")
+        run = FieldRun(path, cache=work / "blend_cache.h5", checkpoint_every=0, force=True)
         with timer(f"fit_field_{kind}"):
             fitted[kind] = fit_field(scene, feats, cb, fp, run, report)
     test = scene.views("test")
@@ -158,7 +178,7 @@ def _fit_models(
             field = load_field(fitted["tfcc"])
             renderer = SemanticRenderer(scene.gaussians, field)
             views = {c.name: renderer.render(c, with_rgb=True) for c in test}
-            tfcc = TfccModel(field, fitted["tfcc"], renderer, views)
+            tfcc = TfccModel(field, fitted["tfcc"], renderer, views, {c.name: c for c in test})
         if "direct" in fitted:
             field = load_field(fitted["direct"])
             renderer = SemanticRenderer(scene.gaussians, field)
@@ -203,6 +223,36 @@ def _res_figures(
         if figs:
             out[pid] = (source.source, figs)
     return out
+
+
+def _reusable(
+    path: Path, schema: str, inputs: dict, report: Report, attrs: dict | None = None
+) -> bool:
+    """Whether an artifact of an earlier eval in the same --work can be used as it is: it is a
+    valid `schema` artifact, its recorded input digests are `inputs`, and its attributes hold
+    `attrs` (the options it was made with). Then the stage is skipped (e.g. a second eval with
+    other RES masks refits nothing)."""
+    if not path.is_file():
+        return False
+    try:
+        with open_h5(path, schema) as f:
+            recorded = json.loads(str(f.attrs["inputs"]))
+            held = {k: f.attrs.get(k) for k in attrs or {}}
+    except (GoiError, ValueError, KeyError):
+        return False
+    if recorded != inputs:
+        return False
+    for k, v in (attrs or {}).items():
+        got = held[k]
+        if isinstance(v, str):
+            if k == "config" and isinstance(got, str):
+                got = json.dumps(json.loads(got), sort_keys=True)
+            if got != v:
+                return False
+        elif got is None or int(got) != v:
+            return False
+    report.log(f"eval: reusing {path} (same inputs)")
+    return True
 
 
 def _visibility(room: Room) -> np.ndarray:
@@ -390,9 +440,10 @@ def run_eval(
     train = scene.views("train")
     hp = HyperplaneParams(threshold=p.threshold)
     planes = HyperplaneRun(work / "hyperplanes.h5", refit=True)
+    lp = LiftParams(lift=True, res_views=p.res_views, min_evidence=p.min_evidence)
     doc: dict = {
         "schema": "goi.eval",
-        "schema_version": "1.0",
+        "schema_version": current_version("goi.eval"),
         "goi_version": __version__,
         "command": command_line(),
         "room": str(room.dir),
@@ -404,6 +455,21 @@ def run_eval(
             "over the training views (hidden Gaussians count for nothing)",
         },
         "variants": {v: {"prompts": {}} for v in variants},
+        **(
+            {
+                "lifted": {
+                    "res_views": p.res_views or "all mask files",
+                    "views_chosen_by": "every mask file of the prompt"
+                    if p.res_views is None
+                    else "goi (coverage of the provisional selection); the mask files stand "
+                    "in for a RES model, a view without a file answers empty",
+                    "min_evidence": p.min_evidence,
+                    "params": lp.config(),
+                }
+            }
+            if "lifted" in variants
+            else {}
+        ),
         "timings_s": timer.t,
     }
     figures: dict[str, dict[str, list]] = {v: {} for v in variants}
@@ -414,7 +480,10 @@ def run_eval(
         gts = {v: room.ground_truth(prompt, v) for v in views}
         for variant in variants:
             t0 = time.perf_counter()
-            if FIELD_KIND[variant] == "tfcc":
+            if variant == "lifted":
+                assert tfcc is not None
+                pred = tfcc.predict_lifted(prompt.text, text, source, train, hp, lp, views)
+            elif FIELD_KIND[variant] == "tfcc":
                 assert tfcc is not None
                 pred = tfcc.predict(variant, prompt.text, text, source, train, hp, planes, views)
             else:

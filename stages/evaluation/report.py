@@ -118,6 +118,15 @@ def eval_page(
             f"<td>{fmt(r['mp'])}</td><td>{fmt(r.get('miou_3d'))}</td>"
             f"<td>{fmt(r.get('miou_3d_visible'))}</td></tr>"
         )
+    lifted = report.get("lifted")
+    if lifted is not None:
+        body.append(
+            "</table><p class='key'>lifted (goi's added mode, not the paper's): RES masks of "
+            f"{esc(lifted['res_views'])} views lifted onto the Gaussians, chosen by "
+            f"{esc(lifted['views_chosen_by'])}; evidence threshold {fmt(lifted['min_evidence'])} "
+            "px of blend weight (less: the codebook entry / OSH decides); masks rendered from "
+            "the 3D selection.</p><table>"
+        )
     body.append(
         "</table><h2>Per prompt (IoU)</h2><table><tr><th class='l'>id</th>"
         "<th class='l'>prompt</th>" + "".join(f"<th>{esc(v)}</th>" for v in variants) + "</tr>"

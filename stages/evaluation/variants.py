@@ -5,12 +5,20 @@
   without_tfcc  field decoded straight to the feature space (no codebook) + hyperplane
   baseline      field decoded straight to the feature space + the fixed threshold
 
+and goi's added mode (not in the paper):
+
+  lifted        TFCC field + OSH + the RES masks of several views lifted onto the Gaussians
+                (stages.query.lifted): every mask file of the prompt, or K views chosen by goi
+                with the room's mask files standing in for a RES model; masks are rendered
+                from the 3D selection
+
 The fixed threshold is goi's one documented default (stages.query.osh.THRESHOLD) for every
 prompt and room; it is never tuned on test masks.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,17 +26,25 @@ from pathlib import Path
 import numpy as np
 
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
+from stages.query.lifted import MaskSource, lift_prompt, lifted_masks, view_visibility
+from stages.query.lifting import LiftParams
 from stages.query.masks import mask_of
 from stages.query.osh import Counts, HyperplaneParams, fit_osh, threshold_plane
-from stages.query.res import ResSource, choose_views
+from stages.query.res import ResFiles, ResSource, choose_views
 from stages.query.selection import select
 from stages.scene.cameras import Camera
 from stages.semantics.decode import COVERED_ALPHA, DecodedView, SemanticRenderer
 from stages.semantics.field import Field
 
-VARIANTS = ("full", "without_osh", "without_tfcc", "baseline")
+VARIANTS = ("full", "without_osh", "without_tfcc", "baseline", "lifted")
 #: Which field each variant needs: "tfcc" (the paper's) or "direct" (fit-field --no-tfcc).
-FIELD_KIND = {"full": "tfcc", "without_osh": "tfcc", "without_tfcc": "direct", "baseline": "direct"}
+FIELD_KIND = {
+    "full": "tfcc",
+    "without_osh": "tfcc",
+    "without_tfcc": "direct",
+    "baseline": "direct",
+    "lifted": "tfcc",
+}
 #: Pixels per fitting view the per-pixel (without-TFCC) hyperplane is fitted on.
 DIRECT_FIT_PIXELS = 20_000
 
@@ -84,6 +100,24 @@ def _fit_record(rec: dict, views: list[str]) -> dict:
     return {**{k: rec[k] for k in ("res_iou_init", "res_iou", "steps_run")}, "fit_views": views}
 
 
+class RoomModel:
+    """A room's RES mask files standing in for a RES model that goi runs on the views it
+    chooses: every training view can be asked, and a view without a file answers with an empty
+    mask (the room's RES tool writes no file where the targets cover < 0.5% of the view)."""
+
+    def __init__(self, files: ResFiles):
+        self.files = files
+        self.source = f"{files.source} (as a RES model)"
+
+    def available(self, cams: list[Camera]) -> list[Camera]:
+        return cams
+
+    def mask(self, cam: Camera) -> np.ndarray:
+        if (self.files.dir / f"{cam.name}.png").is_file():
+            return self.files.mask(cam)
+        return np.zeros((cam.height, cam.width), bool)
+
+
 @dataclass
 class TfccModel:
     """The paper's field, with the test views rendered and decoded once for every prompt."""
@@ -92,6 +126,40 @@ class TfccModel:
     path: Path
     renderer: SemanticRenderer
     views: dict[str, DecodedView]  # test view -> decoded render (with RGB, for the pages)
+    cams: dict[str, Camera] = dataclasses.field(default_factory=dict)  # test view -> camera
+    _visibility: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # train -> [G]
+
+    def visibility(self, cam: Camera) -> np.ndarray:
+        """[G] blend weight per Gaussian in a training view, computed once for all prompts."""
+        if cam.name not in self._visibility:
+            self._visibility[cam.name] = view_visibility(self.renderer.rast, cam)
+        return self._visibility[cam.name]
+
+    def predict_lifted(
+        self,
+        prompt: str,
+        text: np.ndarray,
+        source: ResSource,
+        train: list[Camera],
+        hp: HyperplaneParams,
+        lp: LiftParams,
+        views: list[str],
+    ) -> Prediction:
+        # mask files stand in for a model that answers on the views goi picks; a bundle's RES
+        # model answers on them itself
+        src: MaskSource = source
+        if lp.res_views is not None and isinstance(source, ResFiles):
+            src = RoomModel(source)
+        ans = lift_prompt(self.renderer, train, src, prompt, text, hp, lp, self.visibility)
+        masks = lifted_masks(self.renderer.rast, ans.selected, [self.cams[v] for v in views])
+        rec = ans.record(lp)
+        info = {
+            "fit_views": rec["views"],
+            "views_chosen_by": rec["chosen_by"],
+            "view_confidence": {d["view"]: d["confidence"] for d in rec["per_view"]},
+            "n_evident": rec["n_evident"],
+        }
+        return Prediction(masks, ans.selected, info)
 
     def predict(
         self,

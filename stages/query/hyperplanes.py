@@ -198,3 +198,28 @@ def load_plane(
             f"field {field_path} {dim}; fit it again with this field (goi fit-hyperplane)"
         )
     return plane
+
+
+def add_plane(out: Path, plane: Hyperplane, field_path: Path, record: dict) -> Path:
+    """Store a plane fitted elsewhere (goi fit-hyperplane --lift: on lifted evidence) in the
+    artifact, replacing the prompt's plane; `record` (views, parameters) goes with it."""
+    out = Path(out)
+    refuse_inputs({"--out": out}, [field_path])
+    check_writable(out, force=True)
+    existing = read_hyperplanes(out) if out.exists() else {}
+    field_sha = field_key(field_path)
+    info = {
+        "text_source": "lifted",
+        "mask_source": "lifted",
+        "views": json.dumps(record.get("views", [])),
+        "field_sha256": field_sha,
+        "fit_key": "",
+        "config": json.dumps(record, sort_keys=True, default=str),
+        **{k: v for k, v in plane.info.items() if isinstance(v, int | float | str)},
+    }
+    planes = {k: v for k, v in existing.items() if k != plane.prompt}
+    planes[plane.prompt] = Hyperplane(
+        plane.prompt, plane.W, plane.b, plane.scores, plane.text, info
+    )
+    _write(out, planes, {"field": field_sha})
+    return out

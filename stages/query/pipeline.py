@@ -12,12 +12,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
+
 from stages.core.artifacts import input_digest
 from stages.core.files import check_output_file, make_dir, refuse_inputs
 from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, res_masks_dir, wrote_res_masks
+from stages.query.lifting import LiftParams
 from stages.query.masks import (
     MODES,
     MaskParams,
@@ -127,10 +130,13 @@ def run_query(
     run: QueryRun,
     renderer: SemanticRenderer | None = None,
     report: Report = SILENT,
+    lp: LiftParams | None = None,
 ) -> QueryResult:
     prompt = check_prompt(prompt)
-    for params in (hp, qp, run):
+    lp = lp or LiftParams()
+    for params in (hp, qp, run, lp):
         check_params(params)
+    lp.check()
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
     text, text_source = text_embedding(
@@ -141,6 +147,10 @@ def run_query(
         parse_color(run.color, "--color")
     _check_outputs(scene, field_path, prompt, sources, run, cams)
     out = make_dir(run.out, "--out")
+    if lp.lift:
+        return _run_lifted(
+            scene, field_path, prompt, text, sources, hp, lp, run, cams, renderer, report
+        )
     res_dir = None
     if qp.mode == "hyperplane":
         masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
@@ -170,20 +180,54 @@ def run_query(
     sel_path = write_selection(
         pdir / "selection.h5", sel, plane, qp.mode, scene.ply_digest(), inputs, force=True
     )
-    ply = None
-    if run.export != "none" and (sel.any() or run.export != "subset"):
-        edit = PlyEditParams(
-            invert=run.export == "invert",
-            highlight=run.color if run.export == "highlight" else None,
-        )
-        selection = Selection(sel, prompt, qp.mode, scene.ply_digest())
-        ply, _ = export_ply(
-            scene.gaussians,
-            selection,
-            scene.ply_digest(),
-            edit,
-            PlyExportRun(pdir / f"{safe_name(prompt)}.ply", force=True),
-        )
+    ply = _export(scene, sel, prompt, qp.mode, run, pdir)
     n = int(sel.sum())
     info = dict(plane.info)
     return QueryResult(prompt, pdir, cached, masks_written, sel_path, ply, n, info, res_dir)
+
+
+def _run_lifted(
+    scene: Scene,
+    field_path: Path,
+    prompt: str,
+    text: np.ndarray,
+    sources: PromptSources,
+    hp: HyperplaneParams,
+    lp: LiftParams,
+    run: QueryRun,
+    cams: list[Camera],
+    renderer: SemanticRenderer,
+    report: Report,
+) -> QueryResult:
+    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lifted)."""
+    from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
+
+    masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
+    ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, report)
+    pdir = Path(run.out) / safe_name(prompt)
+    written = write_masks(renderer, ans.selected, cams, pdir / "masks", True, True, report)
+    sel_path = write_lifted_selection(pdir / "selection.h5", ans, scene, field_path, lp, True)
+    ply = _export(scene, ans.selected, prompt, "lifted", run, pdir)
+    info = {"views": ans.views, "chosen_by": ans.chosen_by}
+    return QueryResult(prompt, pdir, False, written, sel_path, ply, int(ans.selected.sum()), info)
+
+
+def _export(
+    scene: Scene, sel: np.ndarray, prompt: str, mode: str, run: QueryRun, pdir: Path
+) -> Path | None:
+    """The PLY the query exports (`run.export`) for the selection sel [G] bool, if any."""
+    if run.export == "none" or (not sel.any() and run.export == "subset"):
+        return None
+    edit = PlyEditParams(
+        invert=run.export == "invert",
+        highlight=run.color if run.export == "highlight" else None,
+    )
+    selection = Selection(sel, prompt, mode, scene.ply_digest())
+    ply, _ = export_ply(
+        scene.gaussians,
+        selection,
+        scene.ply_digest(),
+        edit,
+        PlyExportRun(pdir / f"{safe_name(prompt)}.ply", force=True),
+    )
+    return ply

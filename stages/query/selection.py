@@ -8,6 +8,7 @@ since their decoded entry says nothing about them.
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +34,7 @@ class Selection:
     prompt: str
     mode: str
     ply_sha256: str
+    lifted: dict | None = None  # lifted mode: views, evidence per view, parameters
 
 
 def write_selection(
@@ -43,7 +45,10 @@ def write_selection(
     ply_sha: str,
     inputs: dict,
     force: bool = False,
+    lifted: dict | None = None,
+    evidence: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Path:
+    """`lifted` (a JSON-able record) and `evidence` (S1, S0 [G]) for a lifted selection."""
     with write_h5(path, SCHEMA, inputs, force) as f:
         f.attrs["prompt"] = plane.prompt
         f.attrs["mode"] = mode
@@ -51,6 +56,12 @@ def write_selection(
         f.attrs["n_selected"] = int(sel.sum())
         f.attrs["ply_sha256"] = ply_sha
         put(f, "selected", sel.astype(np.uint8), compress=True)
+        if lifted is not None:
+            g = f.create_group("lifted")
+            g.attrs["record"] = json.dumps(lifted, sort_keys=True)
+            if evidence is not None:
+                put(g, "S1", evidence[0].astype(np.float32), compress=True)
+                put(g, "S0", evidence[1].astype(np.float32), compress=True)
     return Path(path)
 
 
@@ -64,6 +75,7 @@ def load_selection(path: str | os.PathLike[str]) -> Selection:
             str(f.attrs["prompt"]),
             str(f.attrs["mode"]),
             str(f.attrs["ply_sha256"]),
+            json.loads(str(f["lifted"].attrs["record"])) if "lifted" in f else None,
         )
         if int(f.attrs["n_selected"]) != int(sel.selected.sum()):
             raise GoiError(f"{path}: attribute 'n_selected' does not count the selected Gaussians")

@@ -136,3 +136,16 @@ def reference_render(
         alpha.reshape(height, width).astype(np.float32),
         depth.reshape(height, width).astype(np.float32),
     )
+
+
+def reference_lift(
+    proj: Projected, width: int, height: int, mask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """s1, s0 [N] of a mask [H, W] bool: every pixel's weights added to its Gaussians, float64."""
+    n = proj.means2d.shape[0]
+    s1, s0 = np.zeros(n), np.zeros(n)
+    for p, pix in enumerate(reference_weights(proj, width, height)):
+        dest = s1 if mask.flat[p] else s0
+        for g, w in pix:
+            dest[g] += w
+    return s1, s0

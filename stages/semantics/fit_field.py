@@ -55,7 +55,7 @@ class FieldRun:
         return self.out.with_name(self.out.name + ".ckpt")
 
 
-def _inputs(scene: Scene, features_path: Path, codebook_path: Path) -> dict[str, str]:
+def field_inputs(scene: Scene, features_path: Path, codebook_path: Path) -> dict[str, str]:
     return {
         "ply": scene.ply_digest(),
         "cameras": scene.cameras_digest(),
@@ -118,7 +118,7 @@ def fit_field(
             f"{codebook_path}: codebook entries have dimension {codebook.shape[1]}, "
             f"but the features in {features_path} have {dim}"
         )
-    inputs = _inputs(scene, features_path, codebook_path)
+    inputs = field_inputs(scene, features_path, codebook_path)
     shapes = {
         "features": (g.count, p.sem_dim),
         "decoder_weight": (dim if p.no_tfcc else codebook.shape[0], p.sem_dim),

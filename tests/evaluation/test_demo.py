@@ -19,8 +19,11 @@ def test_demo_finds_the_prompts_objects(tmp_path):
     res = run_demo(DemoParams(iterations=300, prompts="p01,p08"), DemoRun(out=tmp_path))
     ious = {a.prompt.id: a.iou for a in res.answers}
     assert max(ious.values()) >= 0.5, ious
+    lifted = {a.prompt.id: a.lifted_iou for a in res.answers}
+    assert max(lifted.values()) >= 0.5, lifted  # both answers are shown, and both find it
     page = (tmp_path / "index.html").read_text()
     assert "orange basketball" in page and ".overlay.png" in page
+    assert "lifted" in page and "lifted/" in page
     for a in res.answers:
         r = a.result
         assert len(load_ply(r.ply).vertex) == r.n_selected > 0

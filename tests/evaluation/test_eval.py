@@ -51,7 +51,9 @@ def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
     assert main(argv) == 0
     r = json.loads(out.read_text())
     validate_json(r, "goi.eval", str(out))
-    assert set(r["variants"]) == {"full", "without_osh", "without_tfcc", "baseline"}
+    assert set(r["variants"]) == {"full", "without_osh", "without_tfcc", "baseline", "lifted"}
+    assert r["lifted"]["res_views"] == "all mask files" and r["lifted"]["min_evidence"] == 1.0
+    assert r["variants"]["lifted"]["miou"] >= 0.7
     for v in r["variants"].values():
         assert 0 <= v["miou"] <= 1 and 0 <= v["mpa"] <= 1 and 0 <= v["mp"] <= 1
         assert set(v["prompts"]) == {"p1", "p2"}
@@ -61,7 +63,23 @@ def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
         assert r["timings_s"][stage] > 0
     page = (tmp_path / "r.html").read_text()
     assert "&lt;b&gt;object 1&lt;/b&gt;" in page and "<b>object" not in page
+    assert "evidence threshold" in page
     assert main(argv) == 2  # the report exists: --force is needed
+    # a second eval with other RES masks and the same --work refits nothing
+    work = tmp_path / "r.work"
+    fields = {
+        f: (work / f).stat().st_mtime_ns for f in ("features.h5", "codebook.h5", "field_tfcc.h5")
+    }
+    out2 = tmp_path / "r2.json"
+    argv2 = [*argv[:7], str(out2), *argv[-4:], "--work", str(work)]
+    argv2 += ["--variants", "full,lifted", "--res-views", "3"]
+    assert main(argv2) == 0
+    r2 = json.loads(out2.read_text())
+    assert "fit_field_tfcc" not in r2["timings_s"]
+    assert {f: (work / f).stat().st_mtime_ns for f in fields} == fields
+    assert r2["variants"]["full"]["miou"] == r["variants"]["full"]["miou"]  # same figures
+    assert r2["lifted"]["res_views"] == 3
+    assert all(len(e["fit_views"]) == 3 for e in r2["variants"]["lifted"]["prompts"].values())
 
 
 @pytest.mark.slow

@@ -141,3 +141,54 @@ def test_exported_plys_load_back_with_identical_values(queried, tmp_path):
     assert main([*base, "--out", str(tmp_path / "x.ply"), "--translate", "1,2"]) == 2
     assert main([*base, "--out", str(tmp_path / "x.ply"), "--invert", "--highlight", "red"]) == 2
     assert not (tmp_path / "x.ply").exists()
+
+
+@pytest.mark.slow
+def test_lifted_query_select_render_mask_and_fit_hyperplane(queried, tmp_path):
+    """--lift on query, select, render-mask and fit-hyperplane: the selection records the views
+    and evidence, its masks are the selection seen from the view, and it finds the object."""
+    s, run, root = queried
+    rast = Rasterizer.from_gaussians(load_ply(s["scene"] / "point_cloud.ply"))
+    w = sum(rast.contribution(s["cameras"][n]) for n in s["train"])
+    truth = s["onehot"].argmax(1) == OBJ
+    out = tmp_path / "lifted"
+    assert _query(s, run, root, OBJ, "--lift", "--out", str(out)) == 0
+    sel = _selection_in(out, OBJ, "lifted")
+    assert w[sel & truth].sum() / w[sel | truth].sum() >= 0.9
+    from stages.query.prompts import safe_name
+
+    art = load_selection(out / safe_name(f"object {OBJ}") / "selection.h5")
+    assert art.lifted is not None and art.lifted["views"] == s["train"]
+    assert art.lifted["chosen_by"] == "all mask files"
+    with h5py.File(out / safe_name(f"object {OBJ}") / "selection.h5") as f:
+        assert f.attrs["schema_version"] == "1.1"
+        assert f["lifted/S1"].shape == sel.shape
+    common = [
+        "--scene", str(s["scene"]), "--field", str(run / "field.h5"), "--prompt", f"object {OBJ}",
+        "--text-embeddings", str(root / "text.json"), "--res-masks", str(root / "res"),
+        "--prompt-id", f"o{OBJ}", "--lift",
+    ]  # fmt: skip
+    assert main(["select", *common, "--res-views", "2", "--out", str(tmp_path / "s.h5")]) == 0
+    two = load_selection(tmp_path / "s.h5")
+    assert len(two.lifted["views"]) == 2 and two.mode == "lifted"
+    assert main(["render-mask", *common, "--out", str(tmp_path / "m"), "--no-overlay"]) == 0
+    test_view = s["test"][0]
+    m = cv2.imread(str(tmp_path / "m" / f"{test_view}.png"), cv2.IMREAD_GRAYSCALE) > 0
+    proj, bins = rast.prepare(s["cameras"][test_view])
+    from stages.render.lift import selection_mask
+
+    cam = s["cameras"][test_view]
+    assert np.array_equal(m, selection_mask(proj, bins, sel, cam.width, cam.height))
+    hp = tmp_path / "hp.h5"
+    assert main(["fit-hyperplane", *common, "--out", str(hp)]) == 0
+    with h5py.File(hp) as f:
+        assert json.loads(f["prompts"][safe_name(f"object {OBJ}")].attrs["views"]) == s["train"]
+    # bad inputs: K beyond the training views; masks for none of the views; nothing written
+    assert main(["select", *common, "--res-views", "99", "--out", str(tmp_path / "x.h5")]) == 2
+    empty = tmp_path / "res_none" / f"o{OBJ}"
+    empty.mkdir(parents=True)
+    cv2.imwrite(str(empty / "not_a_view.png"), np.zeros((8, 8), np.uint8))
+    bad = [a if a != str(root / "res") else str(empty.parent) for a in common]
+    assert main(["select", *bad, "--out", str(tmp_path / "x.h5")]) == 2
+    assert not (tmp_path / "x.h5").exists()
+    assert main(["select", *common[:-1], "--out", str(tmp_path / "x.h5")]) == 2  # no plane

@@ -1,0 +1,91 @@
+"""`goi query --lift` (and select / render-mask / fit-hyperplane with --lift): the lifted answer
+of a prompt written as the paper's mode writes its own: masks (rendered from the 3D selection)
+with overlays, the selection artifact (recording the views and evidence used), the PLY.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from stages.core.artifacts import input_digest, write_png
+from stages.core.files import make_dir
+from stages.core.report import SILENT, Report
+from stages.query.lifted import LiftedAnswer, MaskSource, lift_prompt, lifted_masks
+from stages.query.lifting import LiftParams
+from stages.query.masks import overlay
+from stages.query.osh import HyperplaneParams
+from stages.query.prompts import view_file_name
+from stages.query.selection import write_selection
+from stages.scene.cameras import Camera
+from stages.scene.scene import Scene
+from stages.semantics.decode import SemanticRenderer
+
+
+def answer_prompt(
+    scene: Scene,
+    renderer: SemanticRenderer,
+    prompt: str,
+    text: np.ndarray,
+    source: MaskSource,
+    hp: HyperplaneParams,
+    lp: LiftParams,
+    report: Report = SILENT,
+) -> LiftedAnswer:
+    ans = lift_prompt(renderer, scene.views("train"), source, prompt, text, hp, lp, report=report)
+    rec = ans.record(lp)
+    report.log(
+        f"lifted {len(rec['views'])} views ({rec['chosen_by']}): {int(ans.selected.sum())} "
+        f"Gaussians, {rec['n_selected_by_masks']} decided by the masks, "
+        f"{rec['n_selected_by_semantics']} by the field"
+    )
+    return ans
+
+
+def write_masks(
+    renderer: SemanticRenderer,
+    selected: np.ndarray,
+    cams: list[Camera],
+    out: Path,
+    overlays: bool,
+    force: bool,
+    report: Report = SILENT,
+) -> list[Path]:
+    """<view>.png masks rendered from the 3D selection (and overlays on the rendered RGB)."""
+    make_dir(out, "--out")
+    written = []
+    for cam in report.progress(cams, "render-mask", show=lambda c: c.name if c else None):
+        m = lifted_masks(renderer.rast, selected, [cam])[cam.name]
+        stem = view_file_name(cam.name)
+        write_png(out / f"{stem}.png", m.astype(np.uint8) * 255, force)
+        if overlays:
+            rgb = renderer.rast.render_rgb(cam).image
+            write_png(out / f"{stem}.overlay.png", overlay(rgb, m), force)
+        written.append(out / f"{stem}.png")
+    return written
+
+
+def write_lifted_selection(
+    path: Path,
+    ans: LiftedAnswer,
+    scene: Scene,
+    field_path: Path,
+    lp: LiftParams,
+    force: bool,
+) -> Path:
+    """The selection artifact of a lifted answer: the views and evidence go with it."""
+    inputs = {"ply": scene.ply_digest(), **input_digest("field", field_path)}
+    plane = ans.plane
+    return write_selection(
+        path,
+        ans.selected,
+        plane,
+        "lifted",
+        scene.ply_digest(),
+        inputs,
+        force,
+        lifted={**ans.record(lp), "plane": json.loads(json.dumps(plane.info, default=float))},
+        evidence=(ans.lifted.S1, ans.lifted.S0),
+    )

@@ -1,0 +1,198 @@
+"""Lifted queries as pure math: RES masks of several views voted onto the Gaussians, fused with
+the semantic field (arrays in, arrays out; the tile walks are in `stages.render.lift`).
+
+Per view v the walk gives each Gaussian i its evidence s1_v,i (blend weight on mask pixels) and
+s0_v,i (on the other pixels). An empty mask is evidence too: every Gaussian the view sees gets
+s0 (nothing of the prompt there). The decision, per prompt:
+
+  1. vote      S1 = sum_v c_v s1_v, S0 = sum_v c_v s0_v, E = S1 + S0; a Gaussian with
+               E >= tau (`min_evidence`, in pixels' worth of blend weight) is selected when
+               S1 - S0 > beta E (`background_bias` beta; 0 is the plain majority, FlashSplat's
+               background bias in the same role).
+  2. fallback  a Gaussian with E < tau (no view saw enough of it) takes the semantic decision of
+               its codebook entry k (the field's decoded feature): the entry's own vote, summed
+               over the entry's Gaussians that have evidence, or, for an entry none of whose
+               Gaussians has evidence, the OSH's side of the plane. Gaussians the field never
+               saw (zero feature) are out, as in the paper's selection.
+  3. view confidence (`rounds`): real RES models repeat their mistakes across views (the same
+               confuser in many views, masks on views where the target is absent), so errors
+               are correlated and a plain majority can lose. After a vote, the core
+               C = {E >= tau, S1 >= q E} (q = `core_share`) is what the views agree on
+               confidently; each view is scored by the weighted IoU of its lifted mask with
+               the core,
+                   c_v = (sum_C s1_v + k) / (sum_C (s1_v + s0_v) + sum_notC s1_v + k),
+               (k = CONFIDENCE_PRIOR pixels' worth, so a view that neither sees the core nor
+               claims anything keeps 1, and an empty mask on a view that shows a sliver of the
+               core is not silenced by it; an empty mask on a view that shows much of the core
+               goes to ~0), and the vote is taken again with c_v. A view
+               that keeps adding the same confuser, or answers where the target is absent, is
+               down-weighted as a whole instead of winning Gaussian by Gaussian.
+
+The OSH itself is fitted on the lifted evidence (`entry_counts`): entry k's positive and
+negative weights are the S1 and S0 of its Gaussians, the same loss as the paper's per-pixel
+counts but over the Gaussians all the views see.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Annotated
+
+import numpy as np
+
+from stages.core.errors import GoiError
+from stages.core.params import FRACTION, NON_NEGATIVE, Range
+from stages.query.osh import Counts
+
+#: Pixels' worth of agreement every view starts with in its confidence (see the module doc).
+CONFIDENCE_PRIOR = 10.0
+#: Views the RES model runs on when it has to run (a model costs seconds per view on a CPU).
+DEFAULT_MODEL_VIEWS = 8
+
+
+@dataclass
+class LiftParams:
+    """The lifted mode: RES masks of several views lifted onto the Gaussians, fused with the
+    OSH. Recorded with every lifted answer."""
+
+    lift: bool = False
+    """Lift the RES masks of several views onto the Gaussians and fuse them with the OSH (masks
+    are then rendered from the 3D selection); the default is the paper's one-view query."""
+    res_views: Annotated[int | None, Range(ge=1)] = None
+    """With --lift: how many views' RES masks to lift. Default: every mask file of the prompt
+    (--res-masks), or 8 views chosen to cover the provisional selection when a RES model runs."""
+    min_evidence: Annotated[float, NON_NEGATIVE] = 1.0
+    """With --lift: a Gaussian whose lifted blend weight S1 + S0 over the views is below this
+    (in pixels' worth) takes the semantic decision (its codebook entry / the OSH) instead."""
+    background_bias: Annotated[float, Range(gt=-1.0, lt=1.0)] = 0.0
+    """With --lift: a Gaussian is in when S1 - S0 > bias (S1 + S0); > 0 favours background."""
+    confidence_rounds: Annotated[int, NON_NEGATIVE] = 1
+    """With --lift: rounds of per-view confidence re-weighting (0: a plain vote)."""
+    core_share: Annotated[float, FRACTION] = 0.75
+    """With --lift: share of S1 that puts a Gaussian in the core the views are scored against."""
+
+    def config(self) -> dict:
+        return asdict(self)
+
+    def check(self) -> None:
+        """The lifted-mode options mean nothing without --lift: refuse them rather than
+        ignore them."""
+        if not self.lift and self.res_views is not None:
+            raise GoiError("--res-views: only with --lift (it picks the views to lift)")
+
+
+@dataclass
+class ViewEvidence:
+    """One view's lifted mask, kept sparse: only the Gaussians the view sees."""
+
+    view: str
+    ids: np.ndarray  # [k] int64, Gaussians with weight in the view
+    s1: np.ndarray  # [k] float64
+    s0: np.ndarray  # [k] float64
+    empty: bool  # the mask had no pixel
+
+    @classmethod
+    def from_dense(cls, view: str, s1: np.ndarray, s0: np.ndarray) -> ViewEvidence:
+        ids = np.flatnonzero((s1 > 0) | (s0 > 0))
+        return cls(view, ids, s1[ids], s0[ids], not bool((s1 > 0).any()))
+
+    def visibility(self, n: int) -> np.ndarray:
+        """[G] the view's blend weight per Gaussian (s1 + s0)."""
+        out = np.zeros(n)
+        out[self.ids] = self.s1 + self.s0
+        return out
+
+    def summary(self) -> dict:
+        return {
+            "view": self.view,
+            "empty": self.empty,
+            "s1": float(self.s1.sum()),
+            "s0": float(self.s0.sum()),
+        }
+
+
+@dataclass
+class Lifted:
+    selected: np.ndarray  # [G] bool
+    evident: np.ndarray  # [G] bool: decided by the masks (E >= tau)
+    S1: np.ndarray  # [G] float64
+    S0: np.ndarray  # [G] float64
+    confidence: dict[str, float]  # view -> c_v of the final vote
+    info: dict = field(default_factory=dict)
+
+
+def accumulate(
+    evidence: list[ViewEvidence], conf: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """S1, S0 [G]: the confidence-weighted sums over the views."""
+    S1, S0 = np.zeros(n), np.zeros(n)
+    for c, e in zip(conf, evidence, strict=True):
+        if c > 0:
+            S1[e.ids] += c * e.s1
+            S0[e.ids] += c * e.s0
+    return S1, S0
+
+
+def view_confidence(e: ViewEvidence, core: np.ndarray) -> float:
+    """Weighted IoU of a view's lifted mask with the core [G] bool (see the module doc)."""
+    in_core = core[e.ids]
+    hit = float(e.s1[in_core].sum())
+    union = float(e.s0[in_core].sum()) + float(e.s1.sum())
+    return (hit + CONFIDENCE_PRIOR) / (union + CONFIDENCE_PRIOR)
+
+
+def entry_counts(
+    S1: np.ndarray, S0: np.ndarray, entry: np.ndarray, seen: np.ndarray, n_entries: int
+) -> Counts:
+    """The OSH's training counts from lifted evidence: per codebook entry, the S1 and S0 of the
+    (field-seen) Gaussians decoding to it."""
+    return Counts(
+        np.bincount(entry[seen], weights=S1[seen], minlength=n_entries),
+        np.bincount(entry[seen], weights=S0[seen], minlength=n_entries),
+    )
+
+
+def decide(
+    S1: np.ndarray,
+    S0: np.ndarray,
+    entry: np.ndarray,
+    seen: np.ndarray,
+    plane_positive: np.ndarray,
+    p: LiftParams,
+) -> tuple[np.ndarray, np.ndarray]:
+    """[G] selection and [G] 'decided by the masks' (steps 1 and 2 of the module doc).
+    entry [G] int: each Gaussian's codebook entry; seen [G] bool; plane_positive [N] bool."""
+    n = plane_positive.shape[0]
+    E = S1 + S0
+    evident = E >= p.min_evidence
+    vote = (S1 - S0) > p.background_bias * E
+    ev = evident & seen
+    a = np.bincount(entry[ev], weights=S1[ev], minlength=n)  # [N]
+    b = np.bincount(entry[ev], weights=S0[ev], minlength=n)
+    # an entry decides for its unseen Gaussians once it has a pixel's worth of evidence
+    entry_in = np.where(a + b >= 1.0, (a - b) > p.background_bias * (a + b), plane_positive)
+    sel = np.where(evident, vote, seen & entry_in[entry])
+    return sel, evident
+
+
+def fuse(
+    evidence: list[ViewEvidence],
+    entry: np.ndarray,
+    seen: np.ndarray,
+    plane_positive: np.ndarray,
+    p: LiftParams,
+) -> Lifted:
+    """The lifted answer from the views' evidence (module doc, steps 1-3). With no evidence at
+    all every Gaussian takes the semantic decision (the OSH)."""
+    n = entry.shape[0]
+    conf = np.ones(len(evidence))
+    for r in range(p.confidence_rounds + 1):
+        S1, S0 = accumulate(evidence, conf, n)
+        if r == p.confidence_rounds:
+            break
+        E = S1 + S0
+        core = (E >= p.min_evidence) & (S1 >= p.core_share * E)
+        conf = np.array([view_confidence(e, core) for e in evidence])
+    sel, evident = decide(S1, S0, entry, seen, plane_positive, p)
+    confidence = {e.view: round(float(c), 4) for e, c in zip(evidence, conf, strict=True)}
+    return Lifted(sel, evident, S1, S0, confidence)

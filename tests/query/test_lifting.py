@@ -1,0 +1,248 @@
+"""The lifted mode on a synthetic room: exact masks, a distractor, empty masks, view choice."""
+
+import numpy as np
+import pytest
+
+from stages.core.errors import GoiError
+from stages.query.lifted import lift_prompt, lifted_masks, view_evidence, view_visibility
+from stages.query.lifting import LiftParams, ViewEvidence, fuse, view_confidence
+from stages.query.osh import HyperplaneParams
+from stages.query.res import ResFiles
+from stages.query.views import next_view, provisional
+from stages.render.lift import selection_mask
+from stages.render.rasterizer import Rasterizer
+from stages.scene.gaussians import load_ply
+from stages.semantics.decode import SemanticRenderer
+from stages.semantics.field import Field
+from stages.testing.synthetic import look_at, ring_cameras, room_vertex
+from tests.helpers import write_ply
+
+N_OBJ = 6
+TARGET, DISTRACTOR = 2, 3  # neighbouring boxes on the ring of objects
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    d = tmp_path_factory.mktemp("lift")
+    v, ids = room_vertex(12_000, seed=1, n_objects=N_OBJ)
+    g = load_ply(write_ply(d / "room.ply", v))
+    rast = Rasterizer.from_gaussians(g)
+    cams = ring_cameras(16, 96, 72, radius=1.9, height_m=1.5)
+    return {"rast": rast, "ids": ids, "cams": cams, "dir": d, "g": g}
+
+
+def _gt_mask(rast, cam, sel):
+    proj, bins = rast.prepare(cam)
+    return selection_mask(proj, bins, sel, cam.width, cam.height)
+
+
+def _perfect_field(ids, dim=8, seed=0):
+    """A field whose decoded entry of each Gaussian is its object (entry = id)."""
+    n = ids.max() + 1
+    codebook = np.random.default_rng(seed).normal(size=(n, dim)).astype(np.float32)
+    return Field(
+        np.eye(n, dtype=np.float32)[ids], np.eye(n, dtype=np.float32), np.zeros(n), codebook
+    )
+
+
+def _iou(a, b):
+    return (a & b).sum() / max((a | b).sum(), 1)
+
+
+def _evidence(room, masks):
+    return [view_evidence(room["rast"], c, m) for c, m in masks]
+
+
+def test_exact_masks_recover_the_object(room):
+    rast, ids = room["rast"], room["ids"]
+    target = ids == TARGET
+    masks = [(c, _gt_mask(rast, c, target)) for c in room["cams"]]
+    assert sum(m.any() for _, m in masks) >= 8
+    ev = _evidence(room, masks)
+    entry = ids
+    out = fuse(ev, entry, np.ones(ids.size, bool), np.zeros(N_OBJ + 1, bool), LiftParams())
+    assert _iou(out.selected, target) >= 0.95
+    # the masks alone decide most of it; what they do not see, the entry fills in
+    assert _iou(out.selected & out.evident, target & out.evident) >= 0.9
+    assert out.evident[target].mean() > 0.5
+
+
+def test_a_distractor_in_one_view_of_many_is_not_selected(room):
+    rast, ids = room["rast"], room["ids"]
+    target, distractor = ids == TARGET, ids == DISTRACTOR
+    masks = [(c, _gt_mask(rast, c, target)) for c in room["cams"]]
+    # one view whose mask also holds the distractor (the RES added the neighbour)
+    j = max(range(len(masks)), key=lambda i: _gt_mask(rast, masks[i][0], distractor).sum())
+    cam, m = masks[j]
+    masks[j] = (cam, m | _gt_mask(rast, cam, distractor))
+    assert masks[j][1].sum() > m.sum() + 20
+    for rounds in (0, 1):
+        out = fuse(
+            _evidence(room, masks),
+            ids,
+            np.ones(ids.size, bool),
+            np.zeros(N_OBJ + 1, bool),
+            LiftParams(confidence_rounds=rounds),
+        )
+        assert (out.selected & distractor).sum() <= 0.02 * distractor.sum()
+        assert _iou(out.selected, target) >= 0.9
+    # the confidence of the view that added the distractor drops below the others'
+    assert out.confidence[cam.name] < np.median(list(out.confidence.values()))
+
+
+def test_an_empty_mask_removes_false_positives(room):
+    rast, ids = room["rast"], room["ids"]
+    target, distractor = ids == TARGET, ids == DISTRACTOR
+    # a view that sees both, whose mask wrongly holds the distractor too
+    both = max(
+        room["cams"],
+        key=lambda c: min(_gt_mask(rast, c, target).sum(), _gt_mask(rast, c, distractor).sum()),
+    )
+    m = _gt_mask(rast, both, target | distractor)
+    field_seen = np.ones(ids.size, bool)
+    no_plane = np.zeros(N_OBJ + 1, bool)
+    alone = fuse(_evidence(room, [(both, m)]), ids, field_seen, no_plane, LiftParams())
+    assert (alone.selected & distractor).sum() > 0.3 * distractor.sum()
+    # close-ups of the distractor where the target is absent: the RES answers empty
+    centre = rast.means[distractor].mean(axis=0).astype(np.float64)
+    empties = []
+    for k, a in enumerate(np.linspace(0, 2 * np.pi, 12, endpoint=False)):
+        eye = centre + np.r_[0.8 * np.cos(a), 0.8 * np.sin(a), 0.8]
+        cam = look_at(f"e{k}", eye, centre, 96, 72, 25.0)
+        if _gt_mask(rast, cam, target).sum() == 0 and _gt_mask(rast, cam, distractor).sum() > 50:
+            empties.append((cam, np.zeros((72, 96), bool)))
+    assert len(empties) >= 2
+    with_empty = fuse(
+        _evidence(room, [(both, m), *empties]), ids, field_seen, no_plane, LiftParams()
+    )
+    assert (with_empty.selected & distractor).sum() <= 0.05 * distractor.sum()
+    assert (with_empty.selected & target).sum() >= 0.9 * (alone.selected & target).sum()
+
+
+def test_view_confidence_of_an_empty_mask():
+    core = np.array([True, True, False, False])
+    sees_core = ViewEvidence("a", np.array([0, 1]), np.zeros(2), np.array([500.0, 500.0]), True)
+    sliver = ViewEvidence("s", np.array([0, 2]), np.zeros(2), np.array([1.0, 500.0]), True)
+    elsewhere = ViewEvidence("b", np.array([2, 3]), np.zeros(2), np.array([5.0, 5.0]), True)
+    agrees = ViewEvidence(
+        "c", np.array([0, 1, 2]), np.array([5.0, 5.0, 0]), np.array([0, 0, 5.0]), False
+    )
+    # "nothing here" where much of the core is visible; a sliver of it hardly matters
+    assert view_confidence(sees_core, core) < 0.01
+    assert view_confidence(sliver, core) > 0.9
+    assert view_confidence(elsewhere, core) == 1.0  # nothing claimed, nothing of the core seen
+    assert view_confidence(agrees, core) == 1.0
+
+
+def test_view_choice_covers_the_selection_from_different_sides(room):
+    rast, ids = room["rast"], room["ids"]
+    target = ids == TARGET
+    vis = [view_visibility(rast, c) for c in room["cams"]]
+    E = np.zeros(ids.size)
+    chosen = []
+    left = list(range(len(vis)))
+    for _ in range(4):
+        j = left.pop(next_view([vis[i] for i in left], target, E))
+        chosen.append(j)
+        E += vis[j]
+    # the first view sees the target best; the next ones add sides the first did not show
+    assert chosen[0] == int(np.argmax([np.minimum(v[target], 3.0).sum() for v in vis]))
+    seen_by_first = vis[chosen[0]][target] > 0.1
+    seen_by_all = E[target] > 0.1
+    assert seen_by_all.sum() > seen_by_first.sum()
+    assert len(set(chosen)) == 4
+    # the provisional selection falls back to the best entry when no entry is positive
+    scores = np.full(N_OBJ + 1, -1.0)
+    scores[TARGET] = -0.2
+    assert np.array_equal(provisional(scores, ids, np.ones(ids.size, bool)), target)
+
+
+def _write_masks(room, d, sel, names):
+    import cv2
+
+    d.mkdir(parents=True, exist_ok=True)
+    for c in room["cams"]:
+        if c.name in names:
+            cv2.imwrite(
+                str(d / f"{c.name}.png"), _gt_mask(room["rast"], c, sel).astype(np.uint8) * 255
+            )
+
+
+def test_lift_prompt_from_mask_files(room):
+    rast, ids = room["rast"], room["ids"]
+    target = ids == TARGET
+    field = _perfect_field(ids)
+    text = field.unit_codebook()[TARGET]
+    d = room["dir"] / "res" / "p"
+    names = [c.name for c in room["cams"][::2]]
+    _write_masks(room, d, target, names)
+    src = ResFiles(d.parent, "p", "the box")
+    hp = HyperplaneParams()
+    ans = lift_prompt(
+        SemanticRenderer(room["g"], field),
+        room["cams"],
+        src,
+        "the box",
+        text,
+        hp,
+        LiftParams(lift=True),
+    )
+    assert ans.views == names and ans.chosen_by == "all mask files"
+    assert _iou(ans.selected, target) >= 0.95
+    rec = ans.record(LiftParams(lift=True))
+    assert [v["view"] for v in rec["per_view"]] == names
+    # K of the files, chosen by coverage
+    k3 = lift_prompt(
+        SemanticRenderer(room["g"], field),
+        room["cams"],
+        src,
+        "the box",
+        text,
+        hp,
+        LiftParams(res_views=3),
+    )
+    assert len(k3.views) == 3 and set(k3.views) <= set(names)
+    assert _iou(k3.selected, target) >= 0.9
+    # masks rendered from the selection agree with the object's own silhouette
+    m = lifted_masks(rast, ans.selected, room["cams"][1:4])
+    for c in room["cams"][1:4]:
+        gt = _gt_mask(rast, c, target)
+        assert _iou(m[c.name], gt) >= 0.9
+
+
+def test_lift_prompt_bad_inputs(room, tmp_path):
+    ids = room["ids"]
+    field = _perfect_field(ids)
+    text = field.unit_codebook()[TARGET]
+    d = tmp_path / "res" / "p"
+    d.mkdir(parents=True)
+    import cv2
+
+    cv2.imwrite(str(d / "nope.png"), np.zeros((72, 96), np.uint8))
+    src = ResFiles(d.parent, "p", "x")
+    with pytest.raises(GoiError, match="none of the 16 training views"):
+        lift_prompt(
+            SemanticRenderer(room["g"], field),
+            room["cams"],
+            src,
+            "x",
+            text,
+            HyperplaneParams(),
+            LiftParams(),
+        )
+    with pytest.raises(GoiError, match="--res-views: 17 is more than"):
+        lift_prompt(
+            SemanticRenderer(room["g"], field),
+            room["cams"],
+            src,
+            "x",
+            text,
+            HyperplaneParams(),
+            LiftParams(res_views=17),
+        )
+
+
+def test_res_views_needs_lift():
+    LiftParams(lift=True, res_views=3).check()
+    with pytest.raises(GoiError, match="only with --lift"):
+        LiftParams(res_views=3).check()

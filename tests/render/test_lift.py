@@ -1,0 +1,104 @@
+import numpy as np
+import pytest
+
+from stages.render.composite import blend_weights
+from stages.render.lift import lift_mask, selection_mask
+from stages.render.rasterizer import Rasterizer
+from stages.render.reference import reference_lift, reference_project
+from stages.scene.gaussians import load_ply
+from tests.helpers import front_camera, random_vertex, write_ply
+
+
+def _scene(tmp_path, n=300, seed=0):
+    g = load_ply(write_ply(tmp_path / f"s{seed}.ply", random_vertex(n, seed=seed)))
+    return g, Rasterizer.from_gaussians(g)
+
+
+def _dense(indptr, ids, vals, n_pixels, n):
+    """The view's weights as a dense [pixels, Gaussians] matrix."""
+    W = np.zeros((n_pixels, n))
+    rows = np.repeat(np.arange(n_pixels), np.diff(indptr))
+    np.add.at(W, (rows, ids), vals)
+    return W
+
+
+def _mask(cam, seed):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[: cam.height, : cam.width]
+    disc = (xx - 0.4 * cam.width) ** 2 + (yy - 0.5 * cam.height) ** 2 < (0.3 * cam.height) ** 2
+    return disc ^ (rng.random(disc.shape) < 0.05)  # a blob with salt noise
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_lift_equals_the_plain_reference(tmp_path, seed):
+    g, r = _scene(tmp_path, seed=seed)
+    cam = front_camera(61, 45)  # partial tiles at the right and bottom edges
+    proj, bins = r.prepare(cam)
+    m = _mask(cam, seed)
+    s1, s0 = lift_mask(proj, bins, m)
+    ref_proj = reference_project(r.means, r.quats, r.scales, r.opacities, r.valid, cam)
+    r1, r0 = reference_lift(ref_proj, cam.width, cam.height, m)
+    assert r1.sum() > 10 and r0.sum() > 10  # both labels are exercised
+    np.testing.assert_allclose(s1, r1, atol=2e-3, rtol=1e-4)
+    np.testing.assert_allclose(s0, r0, atol=2e-3, rtol=1e-4)
+
+
+def test_lift_is_the_transpose_of_the_render(tmp_path):
+    """s1 = W^T m and s0 = W^T (1 - m) with W the view's dense [pixels, Gaussians] weights,
+    the matrix whose product with per-Gaussian values is the rendered image."""
+    g, r = _scene(tmp_path, n=400, seed=3)
+    cam = front_camera(64, 48)
+    proj, bins = r.prepare(cam)
+    indptr, ids, vals = blend_weights(proj, bins, cam.width, cam.height)
+    W = _dense(indptr, ids, vals, cam.width * cam.height, g.count)
+    f = np.random.default_rng(0).random(g.count)
+    rendered = r.render_features(cam, f[:, None].astype(np.float32)).image[:, :, 0]
+    np.testing.assert_allclose(W @ f, rendered.ravel(), atol=1e-4)  # W is the render
+    m = _mask(cam, 3)
+    s1, s0 = lift_mask(proj, bins, m)
+    mv = m.ravel().astype(np.float64)
+    np.testing.assert_allclose(s1, W.T @ mv, atol=1e-4)
+    np.testing.assert_allclose(s0, W.T @ (1 - mv), atol=1e-4)
+    # an empty mask puts all of every Gaussian's weight on "out"
+    e1, e0 = lift_mask(proj, bins, np.zeros_like(m))
+    assert not e1.any()
+    np.testing.assert_allclose(e0, W.sum(axis=0), atol=1e-4)
+
+
+def test_lift_is_deterministic(tmp_path):
+    g, r = _scene(tmp_path, n=2000, seed=4)
+    cam = front_camera(96, 72)
+    proj, bins = r.prepare(cam)
+    m = _mask(cam, 4)
+    a = lift_mask(proj, bins, m)
+    b = lift_mask(proj, bins, m)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_lift_refuses_a_mask_of_another_size(tmp_path):
+    g, r = _scene(tmp_path)
+    cam = front_camera(64, 48)
+    proj, bins = r.prepare(cam)
+    with pytest.raises(ValueError):
+        lift_mask(proj, bins, np.zeros((100, 100), bool))
+
+
+def test_selection_mask_is_the_selected_share(tmp_path):
+    g, r = _scene(tmp_path, n=400, seed=5)
+    cam = front_camera(64, 48)
+    proj, bins = r.prepare(cam)
+    indptr, ids, vals = blend_weights(proj, bins, cam.width, cam.height)
+    W = _dense(indptr, ids, vals, cam.width * cam.height, g.count)
+    sel = np.random.default_rng(1).random(g.count) < 0.3
+    got = selection_mask(proj, bins, sel, cam.width, cam.height)
+    want = (W @ sel > 0.5 * W.sum(axis=1)).reshape(cam.height, cam.width)
+    disagree = got != want
+    # only pixels within float rounding of exactly half may differ
+    share = (W @ sel) / np.maximum(W.sum(axis=1), 1e-12)
+    assert np.all(np.abs(share.reshape(got.shape)[disagree] - 0.5) < 1e-4)
+    assert got.any() and not got.all()
+    assert not selection_mask(proj, bins, np.zeros(g.count, bool), cam.width, cam.height).any()
+    assert (
+        selection_mask(proj, bins, np.ones(g.count, bool), cam.width, cam.height).sum()
+        == (W.sum(axis=1) > 0).sum()
+    )
