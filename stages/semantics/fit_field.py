@@ -172,7 +172,7 @@ def fit_field(
             {"params": model.decoder.parameters(), "lr": p.lr_decoder},
             {"params": [model.codebook], "lr": p.lr_codebook},
         ],
-        fused=True,  # one pass over the [G, S] features and their two moments, not ten
+        fused=p.fused,  # one pass over the [G, S] features and their two moments, not ten
     )
     rng = np.random.default_rng(p.seed)
     curve: list[list[float]] = []
