@@ -27,27 +27,25 @@ from stages.scene.gaussians import load_ply, save_ply  # noqa: E402
 from stages.testing.synthetic import ring_cameras, room_vertex  # noqa: E402
 
 
-def median_s(fn: Callable[[], object], repeat: int, warmup: int = 1) -> float:
+def median_s(
+    fn: Callable[[], object],
+    repeat: int,
+    warmup: int = 1,
+    clock: Callable[[], float] = time.perf_counter,
+) -> float:
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(repeat):
-        t = time.perf_counter()
+        t = clock()
         fn()
-        times.append(time.perf_counter() - t)
+        times.append(clock() - t)
     return statistics.median(times)
 
 
 def median_cpu_s(fn: Callable[[], object], repeat: int, warmup: int = 1) -> float:
     """Like `median_s` in process CPU seconds (all threads together)."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeat):
-        t = time.process_time()
-        fn()
-        times.append(time.process_time() - t)
-    return statistics.median(times)
+    return median_s(fn, repeat, warmup, time.process_time)
 
 
 def synthetic_scene(n: int, tmp: Path, seed: int = 0):
