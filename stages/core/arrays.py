@@ -7,10 +7,16 @@ import numpy as np
 from stages.core.errors import GoiError
 
 
+def unit_norms(
+    x: np.ndarray, axis: int = -1, eps: float = 1e-12, keepdims: bool = False
+) -> np.ndarray:
+    """The L2 norms along `axis` that `normalise` divides by (clamped below at `eps`)."""
+    return np.maximum(np.linalg.norm(x, axis=axis, keepdims=keepdims), eps)
+
+
 def normalise(x: np.ndarray, axis: int = -1, eps: float = 1e-12) -> np.ndarray:
     """`x` scaled to unit L2 norm along `axis`; all-zero vectors stay zero (never NaN)."""
-    n = np.linalg.norm(x, axis=axis, keepdims=True)
-    return x / np.maximum(n, eps)
+    return x / unit_norms(x, axis, eps, keepdims=True)
 
 
 def require_finite(x: np.ndarray, where: str) -> np.ndarray:

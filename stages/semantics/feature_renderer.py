@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 
+import h5py
 import numba
 import numpy as np
 import torch
@@ -128,8 +129,10 @@ class FeatureRenderer:
         """The views' weights read from the cache file straight into the stacked arrays, so
         that memory holds them once. A fit that streams the cache calls this every step for
         that step's views, with the `order` it read once and `check` off (it checked every
-        view once before)."""
-        with open_h5(path, SCHEMA) as f:
+        view once before, so the per-step read skips the schema validation of the whole file
+        as well)."""
+        opened = open_h5(path, SCHEMA) if check else h5py.File(path, "r")
+        with opened as f:
             n = int(f.attrs["n_gaussians"])
             order = read_order(f, path) if order is None else order
             missing = [v for v in views if v not in f["views"]]

@@ -76,9 +76,3 @@ def load_features(
                 raise GoiError(f"{p}: features of view '{v}' contain NaN/inf")
             maps[v] = normalise(m.astype(np.float32)) if unit else m.astype(np.float16)
     return FeatureMaps(dim, maps)
-
-
-def cell_norms(cells: np.ndarray, eps: float = 1e-12) -> np.ndarray:
-    """[...] float32 norms of float16 cells [..., D], clamped as `normalise` clamps them:
-    dividing a cell by its norm gives exactly what `load_features` returns."""
-    return np.maximum(np.linalg.norm(cells.astype(np.float32), axis=-1), np.float32(eps))

@@ -16,6 +16,7 @@ from typing import Annotated, Any
 import numpy as np
 import torch
 
+from stages.core.arrays import unit_norms
 from stages.core.artifacts import check_writable, input_digest
 from stages.core.errors import GoiError
 from stages.core.files import check_output_name, refuse_if_input, refuse_inputs
@@ -27,7 +28,7 @@ from stages.semantics.blend_cache import cache_nbytes, cache_target, ensure_cach
 from stages.semantics.checkpoint import check_checkpoint, load_checkpoint, save_checkpoint
 from stages.semantics.codebook import load_codebook
 from stages.semantics.feature_renderer import FeatureRenderer
-from stages.semantics.features import cell_norms, feature_grid, feature_views, load_features
+from stages.semantics.features import feature_grid, feature_views, load_features
 from stages.semantics.field import save_field
 from stages.semantics.field_model import PARAMETERS, FieldModel, FieldParams, field_losses
 from stages.semantics.memory import memory_budget, working_set
@@ -155,14 +156,13 @@ def fit_field(
             f"{sum(per_view.values()) / 2**30:.2f} GiB do not fit in "
             f"{budget / 2**30:.2f} GiB beside the rest ({need / 2**30:.2f} GiB)"
         )
-        fr = FeatureRenderer.from_file(cache_path, views[:1])
-        order = fr.order
+        order = None  # read (and checked) with the first view, then reused
         for v in report.progress(views, "check cache", length=len(views)):
-            FeatureRenderer.from_file(cache_path, [v], order=order)
+            order = FeatureRenderer.from_file(cache_path, [v], order=order).order
     else:
         fr = FeatureRenderer.from_file(cache_path, views)
     targets = {v: m.reshape(-1, fm.dim) for v, m in fm.maps.items()}  # [cells, D] float16
-    norms = {v: cell_norms(m) for v, m in targets.items()}  # [cells] float32
+    norms = {v: unit_norms(m.astype(np.float32)) for v, m in targets.items()}  # [cells]
 
     torch.manual_seed(p.seed)
     model = FieldModel(g.count, p.sem_dim, codebook, p.no_tfcc)

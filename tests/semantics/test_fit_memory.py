@@ -113,12 +113,17 @@ def test_the_cli_names_the_option_and_the_size_needed(world, tmp_path, capsys):
 def test_float16_targets_divided_by_their_norms_are_the_unit_features(world):
     import torch
 
-    from stages.semantics.features import cell_norms, load_features
+    from stages.core.arrays import unit_norms
+    from stages.semantics.features import load_features
 
     _, _, feats, _, _ = world
     unit, raw = load_features(feats), load_features(feats, unit=False)
     for v, m in raw.maps.items():
         assert m.dtype == np.float16
         cells = m.reshape(-1, raw.dim)
-        v_gt = torch.from_numpy(cells).float().div_(torch.from_numpy(cell_norms(cells))[:, None])
+        v_gt = (
+            torch.from_numpy(cells)
+            .float()
+            .div_(torch.from_numpy(unit_norms(cells.astype(np.float32)))[:, None])
+        )
         assert np.array_equal(v_gt.numpy(), unit.maps[v].reshape(-1, raw.dim))
