@@ -33,15 +33,21 @@ def save_checkpoint(
             rng_state=json.dumps(rng.bit_generator.state),
             config=json.dumps(config, sort_keys=True),
         )
+        # Per-Gaussian rows in PLY order, whatever order the model holds them in.
         for name, p in zip(PARAMETERS, model.parameter_list(), strict=True):
-            put(f, name, p.detach().numpy())
+            rows = model.ply_rows if name == "features" else _same
+            put(f, name, rows(p.detach().numpy()))
             st = opt.state.get(p, {})
             if st:
                 grp = f.create_group(f"adam/{name}")
-                put(grp, "exp_avg", st["exp_avg"].numpy())
-                put(grp, "exp_avg_sq", st["exp_avg_sq"].numpy())
+                put(grp, "exp_avg", rows(st["exp_avg"].numpy()))
+                put(grp, "exp_avg_sq", rows(st["exp_avg_sq"].numpy()))
                 put(grp, "step", np.float32(st["step"]))
         put(f, "loss_curve", np.asarray(curve, np.float32).reshape(-1, 5))
+
+
+def _same(a: np.ndarray) -> np.ndarray:
+    return a
 
 
 def check_checkpoint(
@@ -90,13 +96,14 @@ def load_checkpoint(
     with open_h5(path, SCHEMA) as f:
         with torch.no_grad():
             for name, p in zip(PARAMETERS, model.parameter_list(), strict=True):
-                p.copy_(torch.from_numpy(f[name][()]))
+                rows = model.model_rows if name == "features" else _same
+                p.copy_(torch.from_numpy(rows(f[name][()])))
                 if f"adam/{name}" in f:
                     grp = f[f"adam/{name}"]
                     opt.state[p] = {
                         "step": torch.tensor(float(grp["step"][()])),
-                        "exp_avg": torch.from_numpy(grp["exp_avg"][()]),
-                        "exp_avg_sq": torch.from_numpy(grp["exp_avg_sq"][()]),
+                        "exp_avg": torch.from_numpy(rows(grp["exp_avg"][()])),
+                        "exp_avg_sq": torch.from_numpy(rows(grp["exp_avg_sq"][()])),
                     }
         rng.bit_generator.state = json.loads(f.attrs["rng_state"])
         return int(f.attrs["iteration"]), f["loss_curve"][()].tolist()

@@ -73,6 +73,36 @@ def _scatter_sum(bufs, idx, out):
             out[idx[i]] += bufs[t, i]
 
 
+@numba.njit(parallel=True, cache=True)
+def _sum_and_clear(bufs, out):
+    """out[i] = sum_b bufs[b, i], then bufs[:, i] = 0: the buffers are ready for the next step
+    without a separate pass (or fresh pages) over [blocks, G, C]."""
+    for i in numba.prange(out.shape[0]):
+        for c in range(out.shape[1]):
+            out[i, c] = bufs[0, i, c]
+            bufs[0, i, c] = 0.0
+        for t in range(1, bufs.shape[0]):
+            for c in range(out.shape[1]):
+                out[i, c] += bufs[t, i, c]
+                bufs[t, i, c] = 0.0
+
+
+class GradBuffers:
+    """The transpose's private block buffers [T_BLOCKS, G, C], kept zeroed between steps.
+
+    A training loop passes one to every `render` call: at 3M Gaussians the buffers are 240 MB,
+    and allocating them afresh each step (page faults, then zeroing) cost more than the
+    transpose itself."""
+
+    def __init__(self) -> None:
+        self.blocks = np.zeros((0, 0, 0), np.float32)
+
+    def get(self, n_gaussians: int, n_ch: int) -> np.ndarray:
+        if self.blocks.shape != (T_BLOCKS, n_gaussians, n_ch):
+            self.blocks = np.zeros((T_BLOCKS, n_gaussians, n_ch), np.float32)
+        return self.blocks
+
+
 class FeatureRenderer:
     """Renders per-Gaussian features at any pixels of the cached views, differentiably.
 
@@ -170,34 +200,50 @@ class FeatureRenderer:
             return np.arange(off, off + w * h, dtype=np.int64)
         return np.asarray(pixels, np.int64) + off
 
-    def render(self, features: torch.Tensor, rows: np.ndarray) -> torch.Tensor:
-        """Rendered features [R, C] at `rows` from per-Gaussian features [G, C] in PLY order;
-        differentiable with respect to `features`."""
-        return _SparseRender.apply(features, self, np.ascontiguousarray(rows))
+    def render(
+        self,
+        features: torch.Tensor,
+        rows: np.ndarray,
+        in_columns: bool = False,
+        buffers: GradBuffers | None = None,
+    ) -> torch.Tensor:
+        """Rendered features [R, C] at `rows` from per-Gaussian features [G, C], differentiable
+        with respect to `features`. These are in PLY order, or with `in_columns` in the
+        cache's column order (`order`): a fit keeps them so, which spares a [G, C] gather each
+        step and a scatter each backward. `buffers` are reused by the backward."""
+        rows = np.ascontiguousarray(rows)
+        return _SparseRender.apply(features, self, rows, in_columns, buffers or GradBuffers())
 
 
 class _SparseRender(torch.autograd.Function):
     @staticmethod
-    def forward(
-        ctx,
-        features: torch.Tensor,
+    def forward(  # type: ignore[override]
+        ctx: torch.autograd.function.FunctionCtx,
+        features: torch.Tensor,  # [G, C]
         fr: FeatureRenderer,
-        rows: np.ndarray,  # noqa: ANN001
+        rows: np.ndarray,  # [R]
+        in_columns: bool,
+        buffers: GradBuffers,
     ) -> torch.Tensor:
-        ctx.fr, ctx.rows = fr, rows
-        src = features.detach().numpy()
-        f = np.empty_like(src)
-        _gather(src, fr.order, f)  # to cache column order
+        ctx.fr, ctx.rows, ctx.in_columns, ctx.buffers = fr, rows, in_columns, buffers  # type: ignore[attr-defined]
+        f = features.detach().numpy()
+        if not in_columns:
+            f = np.empty_like(f)
+            _gather(features.detach().numpy(), fr.order, f)  # to cache column order
         out = np.empty((len(rows), f.shape[1]), np.float32)
         _spmm_rows(fr.indptr, fr.indices, fr.weights, rows, f, out)
         return torch.from_numpy(out)
 
     @staticmethod
-    def backward(ctx, grad: torch.Tensor):  # noqa: ANN001, ANN205
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]  # noqa: ANN001, ANN205
         fr: FeatureRenderer = ctx.fr
         g = grad.detach().contiguous().numpy()
-        buf = np.zeros((T_BLOCKS, fr.n_gaussians, g.shape[1]), np.float32)
+        buf = ctx.buffers.get(fr.n_gaussians, g.shape[1])
         _spmm_rows_t(fr.indptr, fr.indices, fr.weights, ctx.rows, g, buf)
         grad_f = np.empty_like(buf[0])
-        _scatter_sum(buf, fr.order, grad_f)  # back to PLY order
-        return torch.from_numpy(grad_f), None, None
+        if ctx.in_columns:
+            _sum_and_clear(buf, grad_f)
+        else:
+            _scatter_sum(buf, fr.order, grad_f)  # back to PLY order
+            buf[:] = 0.0
+        return torch.from_numpy(grad_f), None, None, None, None

@@ -84,17 +84,48 @@ LOSS_NAMES = ("total", "ent", "max", "joint", "e2e")
 
 class FieldModel(torch.nn.Module):
     """The trainable parts: per-Gaussian features [G, S], the decoder S -> N (direct: S -> D)
-    and the codebook [N, D]."""
+    and the codebook [N, D].
 
-    def __init__(self, n_gaussians: int, sem_dim: int, codebook: np.ndarray, direct: bool):
+    With `order` (the blend cache's column order: row j is Gaussian order[j]) the features are
+    held in that order while fitting; `ply_rows` / `model_rows` convert a [G, ...] array, so
+    that every artifact stays in PLY order."""
+
+    def __init__(
+        self,
+        n_gaussians: int,
+        sem_dim: int,
+        codebook: np.ndarray,
+        direct: bool,
+        order: np.ndarray | None = None,
+    ):
         super().__init__()
         self.features = torch.nn.Parameter(torch.zeros(n_gaussians, sem_dim))
         self.decoder = torch.nn.Linear(sem_dim, codebook.shape[1 if direct else 0])
         self.codebook = torch.nn.Parameter(torch.from_numpy(codebook.copy()))
+        self.order = order
 
     def parameter_list(self) -> list[torch.Tensor]:
         """In the order of `PARAMETERS`."""
         return [self.features, self.decoder.weight, self.decoder.bias, self.codebook]
+
+    def ply_rows(self, a: np.ndarray) -> np.ndarray:
+        """A per-Gaussian array [G, ...] held in the model's row order, in PLY order."""
+        if self.order is None:
+            return a
+        out = np.empty_like(a)
+        out[self.order] = a
+        return out
+
+    def model_rows(self, a: np.ndarray) -> np.ndarray:
+        """The inverse of `ply_rows`."""
+        return a if self.order is None else a[self.order]
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The parameters by their `PARAMETERS` names, features in PLY order."""
+        tensors = zip(PARAMETERS, self.parameter_list(), strict=True)
+        out = {name: t.detach().numpy() for name, t in tensors}
+        out["features"] = self.ply_rows(out["features"])
+        return out
 
 
 #: The model's tensors as the field and checkpoint artifacts name them.

@@ -27,10 +27,10 @@ from stages.scene.scene import Scene
 from stages.semantics.blend_cache import cache_nbytes, cache_target, ensure_cache
 from stages.semantics.checkpoint import check_checkpoint, load_checkpoint, save_checkpoint
 from stages.semantics.codebook import load_codebook
-from stages.semantics.feature_renderer import FeatureRenderer
+from stages.semantics.feature_renderer import FeatureRenderer, GradBuffers
 from stages.semantics.features import feature_grid, feature_views, load_features
 from stages.semantics.field import save_field
-from stages.semantics.field_model import PARAMETERS, FieldModel, FieldParams, field_losses
+from stages.semantics.field_model import FieldModel, FieldParams, field_losses
 from stages.semantics.memory import memory_budget, working_set
 
 
@@ -159,13 +159,16 @@ def fit_field(
         order = None  # read (and checked) with the first view, then reused
         for v in report.progress(views, "check cache", length=len(views)):
             order = FeatureRenderer.from_file(cache_path, [v], order=order).order
+        fr_order = order
     else:
         fr = FeatureRenderer.from_file(cache_path, views)
+        fr_order = fr.order
+    buffers = GradBuffers()
     targets = {v: m.reshape(-1, fm.dim) for v, m in fm.maps.items()}  # [cells, D] float16
     norms = {v: unit_norms(m.astype(np.float32)) for v, m in targets.items()}  # [cells]
 
     torch.manual_seed(p.seed)
-    model = FieldModel(g.count, p.sem_dim, codebook, p.no_tfcc)
+    model = FieldModel(g.count, p.sem_dim, codebook, p.no_tfcc, order=fr_order)
     opt = torch.optim.Adam(
         [
             {"params": [model.features], "lr": p.lr_features, "eps": 1e-15},
@@ -204,7 +207,7 @@ def fit_field(
             rows.append(fr.rows(v, cells))
             tgt.append(targets[v][cells])
             tgt_norm.append(norms[v][cells])
-        f_hat = fr.render(model.features, np.concatenate(rows))  # [B, S]
+        f_hat = fr.render(model.features, np.concatenate(rows), in_columns=True, buffers=buffers)
         v_gt = torch.from_numpy(np.concatenate(tgt)).float()  # [B, D] unit, as load_features
         v_gt.div_(torch.from_numpy(np.concatenate(tgt_norm))[:, None])  # would give them
         loss, parts = field_losses(model, f_hat, v_gt, p.tau(it), p)
@@ -220,10 +223,7 @@ def fit_field(
         if run.checkpoint_every and done % run.checkpoint_every == 0 and done < p.iterations:
             save_checkpoint(run.checkpoint, model, opt, rng, done, curve, inputs, p.config())
 
-    tensors = {
-        name: t.detach().numpy() for name, t in zip(PARAMETERS, model.parameter_list(), strict=True)
-    }
-    save_field(run.out, tensors, np.asarray(curve), views, p.config(), inputs, run.force)
+    save_field(run.out, model.arrays(), np.asarray(curve), views, p.config(), inputs, run.force)
     refuse_if_input(run.checkpoint)
     run.checkpoint.unlink(missing_ok=True)
     return run.out
