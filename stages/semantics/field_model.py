@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from stages.core.params import AT_LEAST_1, FRACTION, NON_NEGATIVE, POSITIVE, SEED, Range
-from stages.semantics.loss_kernels import codebook_rows, joint_rows
+from stages.semantics.loss_kernels import codebook_rows, joint_rows, shifted_rows
 
 
 @dataclass
@@ -145,9 +145,16 @@ def field_losses(
     e = model.decoder(f_hat)  # [B, N]
     t_unit = F.normalize(model.codebook, dim=1)  # [N, D]
     weights = (p.w_ent, p.w_max, p.w_e2e)
-    e_idx = e.detach().argmax(1)
-    codebook_part, terms, d = _CodebookLosses.apply(t_unit, v_gt, e_idx, tau, weights)
-    l_joint = _JointLoss.apply(e, d)
+    sim = v_gt @ t_unit.detach().T  # [B, N] cosines
+    b, n = sim.shape
+    z, q = torch.empty_like(sim), torch.empty(b, n)  # [B, N] each, exponentiated below
+    d, e_idx = np.empty(b, np.int64), np.empty(b, np.int64)
+    s_max = np.empty(b, np.float32)
+    shifted_rows(sim.numpy(), e.detach().numpy(), tau, z.numpy(), d, s_max, q.numpy(), e_idx)
+    codebook_part, terms = _CodebookLosses.apply(
+        t_unit, v_gt, sim, z.exp_(), e_idx, d, s_max, tau, weights
+    )
+    l_joint = _JointLoss.apply(e, q.exp_(), d)
     total = codebook_part + p.w_joint * l_joint
     ent, mx, e2e = (float(x) for x in terms)
     return total, [float(total.detach()), ent, mx, float(l_joint.detach()), e2e]
@@ -165,31 +172,34 @@ class _CodebookLosses(torch.autograd.Function):
         ctx: torch.autograd.function.FunctionCtx,
         t_unit: torch.Tensor,  # [N, D]
         v_gt: torch.Tensor,  # [B, D] unit
-        e_idx: torch.Tensor,  # [B] argmax of the decoder's logits
+        sim: torch.Tensor,  # [B, N] v_gt t_unit^T, overwritten with dL/dsim
+        p: torch.Tensor,  # [B, N] exp(tau (sim - s_max)): softmax(tau sim) unnormalised
+        e_idx: np.ndarray,  # [B] argmax of the decoder's logits
+        d: np.ndarray,  # [B] argmax of sim
+        s_max: np.ndarray,  # [B] max of sim
         tau: float,
         weights: tuple[float, float, float],
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         b = v_gt.shape[0]
-        sim = v_gt @ t_unit.T  # [B, N] cosines, then dL/dsim in place
-        s_max, d = sim.max(dim=1)
-        p = torch.exp((sim - s_max[:, None]).mul_(tau))  # [B, N] softmax(tau sim), unnormalised
-        s_e2e = sim.gather(1, e_idx[:, None])[:, 0]
+        rows = np.arange(b)
+        s_e2e = sim.numpy()[rows, e_idx].astype(np.float64)
         ent = np.empty(b, np.float64)
-        codebook_rows(sim.numpy(), p.numpy(), e_idx.numpy(), d.numpy(), tau, *weights, ent)
+        codebook_rows(sim.numpy(), p.numpy(), e_idx, d, tau, *weights, ent)
         terms = torch.tensor(
-            [ent.mean(), 1 - float(s_max.double().mean()), 1 - float(s_e2e.double().mean())],
+            [ent.mean(), 1 - float(s_max.astype(np.float64).mean()), 1 - float(s_e2e.mean())],
             dtype=sim.dtype,
         )
         total = (torch.tensor(weights, dtype=sim.dtype) * terms).sum()
-        ctx.mark_non_differentiable(terms, d)
+        ctx.mark_non_differentiable(terms)
         ctx.save_for_backward(sim, v_gt)
         ctx.set_materialize_grads(False)
-        return total, terms, d
+        return total, terms
 
     @staticmethod
-    def backward(ctx, g_total, _g_terms, _g_d):  # type: ignore[override]  # noqa: ANN001, ANN205
+    def backward(ctx, g_total, _g_terms):  # type: ignore[override]  # noqa: ANN001, ANN205
         grad, v_gt = ctx.saved_tensors  # grad: dL/dsim without the mean's 1/B
-        return grad.T @ v_gt * (g_total / grad.shape[0]), None, None, None, None  # [N, D]
+        grad_t = grad.T @ v_gt * (g_total / grad.shape[0])  # [N, D]
+        return grad_t, None, None, None, None, None, None, None, None
 
 
 class _JointLoss(torch.autograd.Function):
@@ -200,20 +210,20 @@ class _JointLoss(torch.autograd.Function):
     def forward(  # type: ignore[override]
         ctx: torch.autograd.function.FunctionCtx,
         e: torch.Tensor,  # [B, N] decoder logits
-        d: torch.Tensor,  # [B] the target entries
+        q: torch.Tensor,  # [B, N] exp(e - max e), overwritten with dL/de
+        d: np.ndarray,  # [B] the target entries
     ) -> torch.Tensor:
         b, n = e.shape
         scale = 50.0 / (b * n)  # the mean over B N
-        grad = torch.softmax(e.detach(), dim=1)  # [B, N], then dL/de in place
         sq = np.empty(b, np.float64)
-        joint_rows(grad.numpy(), d.numpy(), scale, sq)
-        ctx.save_for_backward(grad)
+        joint_rows(q.numpy(), d, scale, sq)
+        ctx.save_for_backward(q)
         return torch.tensor(scale * sq.sum(), dtype=e.dtype)
 
     @staticmethod
     def backward(ctx, g_loss):  # type: ignore[override]  # noqa: ANN001, ANN205
         (grad,) = ctx.saved_tensors
-        return grad.mul_(g_loss), None  # the graph is used once: no need to keep grad
+        return grad.mul_(g_loss), None, None  # the graph is used once: no need to keep grad
 
 
 def reference_field_losses(

@@ -16,6 +16,31 @@ import numba
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
+def shifted_rows(sim, e, tau, z, d, s_max, q, e_idx):
+    """For each row, one pass over the cosines sim [B, N] and one over the decoder's logits
+    e [B, N]: d [B], s_max [B] the argmax and max of sim (the first on ties, as torch's),
+    z = tau (sim - s_max) [B, N]; e_idx [B] the argmax of e and q = e - max(e) [B, N].
+    exp(z) and exp(q) are softmax(tau sim) and softmax(e) before their row sums (the callers
+    exponentiate with torch, vectorised)."""
+    b, n = sim.shape
+    for i in numba.prange(b):
+        row, best = sim[i], 0
+        for j in range(1, n):
+            if row[j] > row[best]:
+                best = j
+        d[i], s_max[i] = best, row[best]
+        for j in range(n):
+            z[i, j] = tau * (row[j] - row[best])
+        row, best = e[i], 0
+        for j in range(1, n):
+            if row[j] > row[best]:
+                best = j
+        e_idx[i] = best
+        for j in range(n):
+            q[i, j] = row[j] - row[best]
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True)
 def codebook_rows(sim, p, e_idx, d, tau, w_ent, w_max, w_e2e, ent):
     """For each row: sim [B, N] cosines, p [B, N] = exp(tau (sim - max)), d [B] the argmax of
     sim and e_idx [B] the entry the decoder picked. Writes ent [B], the entropy of
@@ -41,13 +66,20 @@ def codebook_rows(sim, p, e_idx, d, tau, w_ent, w_max, w_e2e, ent):
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def joint_rows(q, d, scale, sq):
-    """For each row of q = softmax(e) [B, N] and target entries d [B]: sq [B] the squared
-    distance |q - onehot(d)|^2, and q overwritten with d/de of scale * that distance:
-    with r = q - onehot(d) and g = 2 scale r = dL/dq, dL/de = q (g - sum(q g))."""
+    """For each row of q = exp(e - max e) [B, N] (softmax(e) before its row sum, normalised
+    here) and target entries d [B]: sq [B] the squared distance |softmax(e) - onehot(d)|^2,
+    and q overwritten with d/de of scale * that distance: with r = softmax(e) - onehot(d) and
+    g = 2 scale r = dL/dq, dL/de = q (g - sum(q g))."""
     b, n = q.shape
     for i in numba.prange(b):
         row = q[i]
         t = d[i]
+        total = 0.0
+        for j in range(n):
+            total += row[j]
+        inv = 1.0 / total
+        for j in range(n):
+            row[j] *= inv
         dist = 0.0
         qg = 0.0
         for j in range(n):
