@@ -91,6 +91,7 @@ def suite_scale(repeat: int, tmp: Path, size: Size | None = None) -> dict[str, f
         "scale_gaussians": size.gaussians,
         "scale_views": size.views,
         "scale_pixels": size.width * size.height,
+        "scale_iterations": size.iterations,
     }
     root = tmp / "scale"
     t = time.perf_counter()
@@ -114,9 +115,11 @@ def suite_scale(repeat: int, tmp: Path, size: Size | None = None) -> dict[str, f
     wall, rss = _goi(field_args, log)
     out["scale_fit_field_s"], out["scale_peak_rss_gib"] = wall, rss
     out["scale_cache_disk_gib"] = (work / "cache.h5").stat().st_size / 2**30
-    text = _log_value(log, "blend cache built in")
-    if text is not None:
-        out["scale_cache_build_s"] = text
+    built = _log_value(log, "blend cache built in")
+    if built is not None:
+        out["scale_cache_build_s"] = built
+        # the rest of the run (loading, the fit, saving) per iteration: what grows with G
+        out["scale_fit_s_per_iteration"] = (wall - built) / size.iterations
     out.update(_query(root, work, made, repeat))
     return out
 

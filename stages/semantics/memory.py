@@ -61,8 +61,9 @@ def working_set(
     cells = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
     features = sum(w * h for w, h in cells.values()) * dim * 2  # float16
     gaussians = scene.gaussians.vertex.nbytes * 3  # the PLY, its arrays, the rasteriser's
-    # features, gradient, Adam's two moments, the transpose's block buffers, two reorderings
-    optimiser = n_gaussians * p.sem_dim * 4 * (6 + T_BLOCKS)
+    # features, gradient, Adam's two moments, the transpose's block buffers, and a copy of the
+    # features in PLY order when the field is saved
+    optimiser = n_gaussians * p.sem_dim * 4 * (5 + T_BLOCKS)
     per_step = max(w * h for w, h in cells.values()) * p.views_per_step
     if p.cells_per_view:
         per_step = min(per_step, p.cells_per_view * p.views_per_step)
