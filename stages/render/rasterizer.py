@@ -8,12 +8,13 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
+import numba
 import numpy as np
 
 from stages.render.composite import Rendered, blend_weights, render
 from stages.render.projection import Projected, project
 from stages.render.sh import sh_to_rgb
-from stages.render.tiles import Bins, bin_tiles
+from stages.render.tiles import Bins, View, bin_tiles, compact_view
 from stages.scene.cameras import Camera
 
 
@@ -62,27 +63,63 @@ class Rasterizer:
         return cls(g.means, g.quats, g.scales, g.opacities, g.sh, g.valid, backend)
 
     def prepare(self, cam: Camera) -> tuple[Projected, Bins]:
+        """The projection of every Gaussian and the tiles' lists in scene indices (for callers
+        that keep per-Gaussian results in scene order: weights, gradients, lifting)."""
         proj = project(self.means, self.quats, self.scales, self.opacities, self.valid, cam)
         return proj, bin_tiles(proj, cam.width, cam.height)
+
+    def view(self, cam: Camera) -> View:
+        """The Gaussians `cam` sees, in rows of their own (what a render walks; see `View`)."""
+        proj = project(self.means, self.quats, self.scales, self.opacities, self.valid, cam)
+        return compact_view(proj, cam.width, cam.height)
+
+    def colors(self, cam: Camera, rows: np.ndarray | None = None) -> np.ndarray:
+        """View-dependent RGB [N, 3] of the SH, or [len(rows), 3] of the Gaussians `rows` only."""
+        if rows is None:
+            return sh_to_rgb(self.sh, self.means, cam.center)
+        return sh_to_rgb(take_rows(self.sh, rows), take_rows(self.means, rows), cam.center)
 
     def render_rgb(self, cam: Camera, background: Any = (0.0, 0.0, 0.0)) -> Rendered:
         bg = np.asarray(background, np.float32)
         if self.backend is not None:
             return self.backend.render(self, cam, None, bg)
-        proj, bins = self.prepare(cam)
-        colors = sh_to_rgb(self.sh, self.means, cam.center)
-        return render(proj, bins, colors, cam.width, cam.height, bg)
+        view = self.view(cam)
+        colors = self.colors(cam, view.gaussians)
+        return render(view.proj, view.bins, colors, cam.width, cam.height, bg)
 
     def render_features(self, cam: Camera, features: np.ndarray) -> Rendered:
         """Per-Gaussian values [N, C] composited without background."""
         if self.backend is not None:
             return self.backend.render(self, cam, np.asarray(features, np.float32), None)
-        proj, bins = self.prepare(cam)
-        return render(proj, bins, features, cam.width, cam.height)
+        view = self.view(cam)
+        return self.render_view(cam, view, take_rows(features, view.gaussians))
+
+    def render_view(self, cam: Camera, view: View, values: np.ndarray) -> Rendered:
+        """Per-row values [V, C] of `view` (values[r] belongs to Gaussian view.gaussians[r])
+        composited without background."""
+        return render(view.proj, view.bins, values, cam.width, cam.height)
 
     def contribution(self, cam: Camera) -> np.ndarray:
         """[N] float64: each Gaussian's blending weight summed over the view's pixels (how much
         of the image it makes; 0 for Gaussians the view does not see)."""
-        proj, bins = self.prepare(cam)
-        _, ids, w = blend_weights(proj, bins, cam.width, cam.height)
-        return np.bincount(ids, weights=w, minlength=self.means.shape[0])
+        view = self.view(cam)
+        _, rows, w = blend_weights(view.proj, view.bins, cam.width, cam.height)
+        return np.bincount(view.gaussians[rows], weights=w, minlength=self.means.shape[0])
+
+
+@numba.njit(parallel=True, cache=True)
+def _take_rows(values, rows, out):
+    for r in numba.prange(rows.shape[0]):
+        out[r] = values[rows[r]]
+
+
+def take_rows(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """values[rows] as contiguous float32 (a parallel gather: the view's rows of a [G, ...]
+    array, without converting or copying the rest)."""
+    out = np.empty((rows.shape[0], *values.shape[1:]), np.float32)
+    if values.dtype != np.float32 or not values.flags.c_contiguous:
+        out[:] = values[rows]
+    elif rows.shape[0]:
+        flat = values.reshape(values.shape[0], -1)
+        _take_rows(flat, rows, out.reshape(rows.shape[0], -1))
+    return out

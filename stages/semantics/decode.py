@@ -12,8 +12,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from stages.render.rasterizer import Rasterizer, RenderBackend
-from stages.render.sh import sh_to_rgb
+from stages.render.rasterizer import Rasterizer, RenderBackend, take_rows
 from stages.scene.cameras import Camera
 from stages.scene.gaussians import Gaussians
 from stages.semantics.field import Field
@@ -23,28 +22,47 @@ from stages.semantics.field import Field
 COVERED_ALPHA = 0.5
 
 
+@numba.njit(cache=True)
+def _max(a):  # noqa: ANN001, ANN202
+    # Eight independent running maxima (no loop-carried dependency, so the compiler vectorises
+    # it), then combined: the same value as a plain scan, as max is exact.
+    n = a.shape[0]
+    m = np.empty(8, np.float32)
+    m[:] = a[0]
+    for k0 in range(0, n - 7, 8):
+        for q in range(8):
+            x = a[k0 + q]
+            m[q] = x if x > m[q] else m[q]
+    best = m[0]
+    for q in range(1, 8):
+        best = m[q] if m[q] > best else best
+    for k in range(n - n % 8, n):
+        best = a[k] if a[k] > best else best
+    return best
+
+
 @numba.njit(parallel=True, cache=True)
 def _decode_kernel(f, wt, b, out):  # noqa: ANN001, ANN202
     # Per pixel, the N logits go to a small buffer and the argmax is taken there: the [M, N]
     # logits matrix (370 MB at 640x480, N = 300) is never materialised. The inner loop runs
-    # over entries with wt [S, N] contiguous, which the compiler vectorises.
+    # over entries with wt [S, N] contiguous, which the compiler vectorises. The argmax is the
+    # first entry equal to the maximum (what a strict > scan keeps), the maximum found apart.
     m, s = f.shape
     n = wt.shape[1]
     block = 256
     for blk in numba.prange((m + block - 1) // block):
         acc = np.empty(n, np.float32)
         for i in range(blk * block, min(m, (blk + 1) * block)):
-            acc[:] = b
+            for k in range(n):
+                acc[k] = b[k]
             for j in range(s):
                 fij = f[i, j]
                 for k in range(n):
                     acc[k] += fij * wt[j, k]
+            best = _max(acc)
             arg = 0
-            best = acc[0]
-            for k in range(1, n):
-                if acc[k] > best:
-                    best = acc[k]
-                    arg = k
+            while acc[arg] != best:
+                arg += 1
             out[i] = arg
 
 
@@ -76,12 +94,19 @@ class SemanticRenderer:
         return out
 
     def render(self, cam: Camera, with_rgb: bool = False) -> DecodedView:
-        feats = self.field.features  # [G, S]
-        s = feats.shape[1]
-        if with_rgb:
-            rgb = sh_to_rgb(self.g.sh, self.g.means, cam.center)  # [G, 3]
-            feats = np.concatenate([feats, rgb], axis=1)
-        out = self.rast.render_features(cam, np.ascontiguousarray(feats, np.float32))
+        s = self.field.features.shape[1]
+        if self.rast.backend is not None:
+            feats = self.field.features  # [G, S]
+            if with_rgb:
+                feats = np.concatenate([feats, self.rast.colors(cam)], axis=1)
+            out = self.rast.render_features(cam, np.ascontiguousarray(feats, np.float32))
+        else:
+            # Only the Gaussians the view sees: their features gathered, their colours evaluated.
+            view = self.rast.view(cam)
+            values = take_rows(self.field.features, view.gaussians)  # [V, S]
+            if with_rgb:
+                values = np.concatenate([values, self.rast.colors(cam, view.gaussians)], axis=1)
+            out = self.rast.render_view(cam, view, values)
         img = out.image  # [H, W, C]
         covered = out.alpha > COVERED_ALPHA
         index = np.zeros(covered.shape, np.int32)  # uncovered pixels are in no mask anyway
