@@ -116,6 +116,9 @@ def _walk_kernel(
             ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
             o = opacities[g]
             q_max = 2.0 * math.log(255.0 * o)
+            # Below this power alpha < 1/255 for certain (by a margin far above float32
+            # rounding): those pixels skip the exp; the exact test below decides the rest.
+            power_min = np.float32(-0.5 * q_max - 1e-3)
             gx0, gx1, gy0, gy1 = _footprint(g, means2d, extent, x0, y0, x1, y1)
             for py in range(gy0, gy1):
                 r = py - y0
@@ -148,7 +151,7 @@ def _walk_kernel(
                             continue
                         dx = mx - np.float32(px)
                         power = np.float32(-0.5) * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                        if power > 0.0:
+                        if power > 0.0 or power < power_min:
                             continue
                         alpha = min(np.float32(ALPHA_MAX), o * np.exp(power))
                         if alpha < ALPHA_MIN:
