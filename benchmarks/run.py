@@ -2,8 +2,9 @@
 
     python benchmarks/run.py --suite raster [--json OUT] [--repeat 5]
 
-Suites: raster, field, query (goi's own stages) and models (the RES models at their real
-size, random weights, exported and timed in onnxruntime; benchmarks/models.py).
+Suites: raster, pooled (the pooled blend cache at 3M Gaussians), field, query (goi's own
+stages) and models (the RES models at their real size, random weights, exported and timed in
+onnxruntime; benchmarks/models.py).
 
 Figures are measured, never asserted: tests check behaviour, this checks speed.
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -122,6 +124,54 @@ def suite_raster(repeat: int, tmp: Path) -> dict[str, float]:
     out["naive_over_cache"] = (
         out["naive_fwd_bwd_ms_4x64k_300k"] / out["sparse_fwd_bwd_ms_4x64k_300k"]
     )
+    return out
+
+
+def suite_pooled(repeat: int, tmp: Path) -> dict[str, float]:
+    """The pooled blend cache at scale (issue #15): 3M Gaussians, 1237x822 views, stride-8
+    cells. Per view, the reference (the per-pixel CSR from two walks, gathered into columns,
+    then pooled) against the fused pooled walk, alternating in one process; `repeat` views
+    spread around the ring. GOI_POOLED_PLY names a PLY to use instead of making the 3M room."""
+    from stages.render.composite import blend_weights, pooled_blend_weights
+    from stages.render.rasterizer import Rasterizer
+    from stages.semantics.weights import morton_order, pixel_cells, pool
+
+    ply = os.environ.get("GOI_POOLED_PLY")
+    g = load_ply(ply) if ply else synthetic_scene(3_000_000, tmp)
+    rast = Rasterizer.from_gaussians(g)
+    order = morton_order(rast.means)
+    position = np.empty_like(order)
+    position[order] = np.arange(len(order), dtype=np.int32)
+    w, h, stride = 1237, 822, 8
+    cells_w, cells_h = w // stride, h // stride
+    cell_x, cell_y = pixel_cells(w, cells_w), pixel_cells(h, cells_h)
+    ring = ring_cameras(200, w, h, radius=1.9, height_m=1.5)
+    cams = ring[:: max(1, len(ring) // repeat)][:repeat]
+
+    def reference(proj, bins) -> None:  # noqa: ANN001
+        indptr, ids, vals = blend_weights(proj, bins, w, h)
+        pool(indptr, position[ids], vals, w, h, cells_w, cells_h, len(position))
+
+    def fused(proj, bins) -> None:  # noqa: ANN001
+        pooled_blend_weights(proj, bins, w, h, cell_x, cell_y, position)
+
+    proj, bins = rast.prepare(cams[0])
+    reference(proj, bins)  # compile
+    fused(proj, bins)
+    times: dict[str, list[float]] = {"prepare": [], "reference": [], "fused": []}
+    for i, cam in enumerate(cams):
+        t = time.perf_counter()
+        proj, bins = rast.prepare(cam)
+        times["prepare"].append(time.perf_counter() - t)
+        for name, fn in [("reference", reference), ("fused", fused)][:: 1 if i % 2 else -1]:
+            t = time.perf_counter()
+            fn(proj, bins)
+            times[name].append(time.perf_counter() - t)
+    out = {f"pooled_{k}_s_per_view_3M": statistics.median(v) for k, v in times.items()}
+    out["pooled_reference_over_fused"] = out["pooled_reference_s_per_view_3M"] / max(
+        out["pooled_fused_s_per_view_3M"], 1e-9
+    )
+    out["pooled_load_average_1m"] = os.getloadavg()[0]
     return out
 
 
@@ -372,6 +422,7 @@ def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, f
 
 SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "raster": suite_raster,
+    "pooled": suite_pooled,
     "field": suite_field,
     "query": suite_query,
     "losses": suite_losses,

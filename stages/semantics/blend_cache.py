@@ -26,11 +26,11 @@ from stages.core.errors import GoiError
 from stages.core.files import regular_file
 from stages.core.report import SILENT, Report
 from stages.core.staging import kept_on_interrupt
-from stages.render.composite import blend_weights
+from stages.render.composite import blend_weights, pooled_blend_weights
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
-from stages.semantics.weights import morton_order, pool, top_k
+from stages.semantics.weights import morton_order, pixel_cells, pool, top_k
 
 SCHEMA = "goi.blend_cache"
 
@@ -58,16 +58,24 @@ def view_weights(
     position: np.ndarray,
     k: int = 0,
     size: tuple[int, int] | None = None,
+    fused: bool = True,
 ) -> ViewWeights:
     """Rasterise `cam` once and keep its weights; `position` maps Gaussian id -> column.
-    With `size` (width, height) smaller than the image, pixels are pooled into that grid."""
+    With `size` (width, height) smaller than the image, pixels are pooled into that grid:
+    without top-K, in the walk itself (`fused`; the per-pixel weights are never held), else
+    by pooling the per-pixel CSR (the reference the fused walk is tested against)."""
     proj, bins = rast.prepare(cam)
+    w, h = size or (cam.width, cam.height)
+    pooled = (w, h) != (cam.width, cam.height)
+    if pooled and k <= 0 and fused:
+        cx, cy = pixel_cells(cam.width, w), pixel_cells(cam.height, h)
+        kp, ki, kv, n = pooled_blend_weights(proj, bins, cam.width, cam.height, cx, cy, position)
+        return ViewWeights(w, h, kp, ki, kv, 1.0, n)
     indptr, ids, vals = blend_weights(proj, bins, cam.width, cam.height)
     total = float(vals.sum(dtype=np.float64))
     kp, ki, kv = top_k(indptr, position[ids], vals, k)
     kept = float(kv.sum(dtype=np.float64))
-    w, h = size or (cam.width, cam.height)
-    if (w, h) != (cam.width, cam.height):
+    if pooled:
         kp, ki, kv = pool(kp, ki, kv, cam.width, cam.height, w, h, len(position))
     return ViewWeights(w, h, kp, ki, kv, kept / total if total > 0 else 1.0, int(len(ids)))
 

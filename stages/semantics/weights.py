@@ -118,6 +118,12 @@ def _cell_bounds(n_pix: int, n_cells: int) -> tuple[np.ndarray, np.ndarray]:
     return start, end
 
 
+def pixel_cells(n_pix: int, n_cells: int) -> np.ndarray:
+    """[n_pix] int64: the cell of each pixel (row or column), as `_cell_bounds` draws them."""
+    start, end = _cell_bounds(n_pix, n_cells)
+    return np.repeat(np.arange(n_cells, dtype=np.int64), end - start)
+
+
 def pool(
     indptr: np.ndarray,
     ids: np.ndarray,
