@@ -294,7 +294,7 @@ def suite_losses(repeat: int, tmp: Path) -> dict[str, float]:
     with torch.no_grad():
         model.features.normal_()
     v_gt = F.normalize(torch.randn(b, d), dim=1)
-    p = FieldParams(fused=True)
+    p = FieldParams()
     out: dict[str, float] = {}
     for name, fn in (("reference", reference_field_losses), ("fused", field_losses)):
 

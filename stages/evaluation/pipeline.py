@@ -73,8 +73,9 @@ class EvalParams:
     """The fixed cosine threshold (goi's default; not to be tuned on test masks)."""
     seed: Annotated[int, SEED] = 0
     """Random seed of every stage."""
-    fused: bool = False
-    """fit-field's --fused: the fused losses and Adam (same losses, other rounding)."""
+    reference_losses: bool = False
+    """fit-field's --reference-losses: the paper's losses under autograd and torch's
+    multi-tensor Adam (goi's path before the fused kernels; same losses, other rounding)."""
     res_views: Annotated[int | None, Range(ge=1)] = None
     """Variant lifted: K views chosen by goi, the room's mask files standing in for a RES
     model (a view without a file answers empty). Default: every mask file of the prompt."""
@@ -163,7 +164,10 @@ def _fit_models(
         if kind not in kinds:
             continue
         fp = FieldParams(
-            iterations=p.iterations, no_tfcc=kind == "direct", fused=p.fused, seed=p.seed
+            iterations=p.iterations,
+            no_tfcc=kind == "direct",
+            reference_losses=p.reference_losses,
+            seed=p.seed,
         )
         path = work / f"field_{kind}.h5"
         want = field_inputs(scene, feats, cb)

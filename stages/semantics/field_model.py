@@ -56,12 +56,12 @@ class FieldParams:
     """Fraction of the run after which tau_end applies."""
     top_k: Annotated[int, NON_NEGATIVE] = 0
     """Keep only the K largest blending weights per pixel in the cache (0: all)."""
-    fused: bool = False
-    """Fused losses and optimiser: the same losses with hand-derived gradients (half their CPU
-    time, `benchmarks/run.py --suite losses`) and torch's fused Adam. Rounding differs, so the
-    fit differs from the default's in its last bits and, through argmax decisions, in its
-    figures: dev room `full` mIoU 0.677 and 0.671 in two runs against 0.684 (docs/performance.md).
-    Off by default until it is shown to cost nothing measurable."""
+    reference_losses: bool = False
+    """The paper's losses as written in torch, differentiated by autograd, and torch's
+    multi-tensor Adam: goi's path before the fused kernels, kept to reproduce its figures
+    (a step about 1.7x slower). The default computes the same losses and gradients in fused
+    kernels with torch's fused Adam, in another rounding order (dev-room `full` mIoU over four
+    seeds: docs/performance.md)."""
     no_tfcc: bool = False
     """Ablation (paper's 'without TFCC'): decode the low-dimensional features straight to the
     feature space with a linear decoder and a cosine loss, without the codebook. goi query
@@ -136,11 +136,12 @@ def field_losses(
     model: FieldModel, f_hat: torch.Tensor, v_gt: torch.Tensor, tau: float, p: FieldParams
 ) -> tuple[torch.Tensor, list[float]]:
     """The weighted total and each term (LOSS_NAMES) for rendered features f_hat [B, S] and
-    unit target features v_gt [B, D]: `reference_field_losses`, or with `p.fused` the same
-    values and gradients from one cosine matrix and hand-derived gradients (`_CodebookLosses`,
-    `_JointLoss`): the autograd graph of the plain formulation spends most of a step in a dozen
-    elementwise passes over [B, N] and in the indexed accumulation of T[argmax e]'s gradient."""
-    if p.no_tfcc or not p.fused:
+    unit target features v_gt [B, D]: the same values and gradients as
+    `reference_field_losses`, from one cosine matrix and hand-derived gradients
+    (`_CodebookLosses`, `_JointLoss`): the autograd graph of the plain formulation spends most
+    of a step in a dozen elementwise passes over [B, N] and in the indexed accumulation of
+    T[argmax e]'s gradient. `p.reference_losses` (and the direct ablation) take the plain one."""
+    if p.no_tfcc or p.reference_losses:
         return reference_field_losses(model, f_hat, v_gt, tau, p)
     e = model.decoder(f_hat)  # [B, N]
     t_unit = F.normalize(model.codebook, dim=1)  # [N, D]

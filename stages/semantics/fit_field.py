@@ -175,7 +175,8 @@ def fit_field(
             {"params": model.decoder.parameters(), "lr": p.lr_decoder},
             {"params": [model.codebook], "lr": p.lr_codebook},
         ],
-        fused=p.fused,  # one pass over the [G, S] features and their two moments, not ten
+        # one pass over the [G, S] features and their two moments, not ten
+        fused=not p.reference_losses,
     )
     rng = np.random.default_rng(p.seed)
     curve: list[list[float]] = []

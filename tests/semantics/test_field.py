@@ -52,7 +52,13 @@ def test_the_loss_decreases_and_the_field_describes_itself(fitted):
     )
 
 
-def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, monkeypatch):
+@pytest.mark.parametrize("reference_losses", [False, True])
+def test_resume_after_an_interruption_gives_the_uninterrupted_result(
+    tmp_path, monkeypatch, reference_losses
+):
+    """Both paths (the fused default and the paper's formulation) resume bit for bit; the
+    checkpoint holds the features and their Adam moments in PLY order, whatever order the fit
+    keeps them in."""
     import stages.semantics.fit_field as field_mod
     from stages.scene.scene import load_scene
     from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
@@ -66,7 +72,9 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_result(tmp_path, m
     cb = init_codebook(feats, CodebookParams(entries=8), CodebookRun(tmp_path / "c.h5"))
 
     def fit(out, resume=False, seed=0):
-        p = FieldParams(iterations=60, cells_per_view=64, seed=seed)
+        p = FieldParams(
+            iterations=60, cells_per_view=64, seed=seed, reference_losses=reference_losses
+        )
         run = FieldRun(tmp_path / out, checkpoint_every=20, resume=resume)
         return fit_field(scene, feats, cb, p, run)
 

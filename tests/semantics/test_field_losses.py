@@ -39,7 +39,7 @@ def _grads(fn, model, v_gt, rows, tau, p):
 @pytest.mark.parametrize("weights", [(0.3, 1.0, 1.0, 1.0), (1.0, 0.0, 2.0, 0.5)])
 def test_fused_losses_equal_the_reference_values_and_gradients(tau, weights):
     w_ent, w_max, w_joint, w_e2e = weights
-    p = FieldParams(w_ent=w_ent, w_max=w_max, w_joint=w_joint, w_e2e=w_e2e, fused=True)
+    p = FieldParams(w_ent=w_ent, w_max=w_max, w_joint=w_joint, w_e2e=w_e2e)
     model, v_gt, rows = _model_and_batch(seed=int(tau * 10) + int(w_ent * 3))
     fast, g_fast = _grads(field_losses, model, v_gt, rows, tau, p)
     ref, g_ref = _grads(reference_field_losses, model, v_gt, rows, tau, p)
@@ -53,11 +53,9 @@ def test_fused_losses_equal_the_reference_values_and_gradients(tau, weights):
 def test_each_term_moves_the_gradient():
     """Dropping any one term changes the codebook's gradient: none is silently ignored."""
     model, v_gt, rows = _model_and_batch(seed=3)
-    _, full = _grads(field_losses, model, v_gt, rows, 1.0, FieldParams(fused=True))
+    _, full = _grads(field_losses, model, v_gt, rows, 1.0, FieldParams())
     for term in ("w_ent", "w_max", "w_joint", "w_e2e"):
-        _, without = _grads(
-            field_losses, model, v_gt, rows, 1.0, FieldParams(fused=True, **{term: 0.0})
-        )
+        _, without = _grads(field_losses, model, v_gt, rows, 1.0, FieldParams(**{term: 0.0}))
         changed = [not torch.allclose(a, b) for a, b in zip(full, without, strict=True)]
         assert any(changed), term
 
