@@ -22,48 +22,48 @@ from stages.semantics.field import Field
 COVERED_ALPHA = 0.5
 
 
-@numba.njit(cache=True)
-def _max(a):  # noqa: ANN001, ANN202
-    # Eight independent running maxima (no loop-carried dependency, so the compiler vectorises
-    # it), then combined: the same value as a plain scan, as max is exact.
-    n = a.shape[0]
-    m = np.empty(8, np.float32)
-    m[:] = a[0]
-    for k0 in range(0, n - 7, 8):
-        for q in range(8):
-            x = a[k0 + q]
-            m[q] = x if x > m[q] else m[q]
-    best = m[0]
-    for q in range(1, 8):
-        best = m[q] if m[q] > best else best
-    for k in range(n - n % 8, n):
-        best = a[k] if a[k] > best else best
-    return best
+#: Pixels decoded together: their logits for one entry fill a few vector registers' worth.
+DECODE_BLOCK = 256
 
 
 @numba.njit(parallel=True, cache=True)
 def _decode_kernel(f, wt, b, out):  # noqa: ANN001, ANN202
-    # Per pixel, the N logits go to a small buffer and the argmax is taken there: the [M, N]
-    # logits matrix (370 MB at 640x480, N = 300) is never materialised. The inner loop runs
-    # over entries with wt [S, N] contiguous, which the compiler vectorises. The argmax is the
-    # first entry equal to the maximum (what a strict > scan keeps), the maximum found apart.
+    # A block of pixels at a time, entry by entry: the block's features transposed to [S, B]
+    # make every inner loop run over pixels, contiguous and branch-free, which the compiler
+    # vectorises (2x the speed of a loop over entries per pixel). Each logit is still
+    # b[k] + f[0] wt[0, k] + f[1] wt[1, k] + ..., in that order, and the running maximum keeps
+    # the first entry that reaches it (strict >): the [M, N] logits are never materialised.
     m, s = f.shape
     n = wt.shape[1]
-    block = 256
-    for blk in numba.prange((m + block - 1) // block):
-        acc = np.empty(n, np.float32)
-        for i in range(blk * block, min(m, (blk + 1) * block)):
-            for k in range(n):
-                acc[k] = b[k]
+    blk_n = DECODE_BLOCK
+    for blk in numba.prange((m + blk_n - 1) // blk_n):
+        i0 = blk * blk_n
+        nb = min(m, i0 + blk_n) - i0
+        ft = np.zeros((s, blk_n), np.float32)  # [S, B]
+        for j in range(s):
+            for t in range(nb):
+                ft[j, t] = f[i0 + t, j]
+        logit = np.empty(blk_n, np.float32)
+        best = np.empty(blk_n, np.float32)
+        arg = np.zeros(blk_n, np.int32)
+        for k in range(n):
+            bk = b[k]
+            for t in range(blk_n):
+                logit[t] = bk
             for j in range(s):
-                fij = f[i, j]
-                for k in range(n):
-                    acc[k] += fij * wt[j, k]
-            best = _max(acc)
-            arg = 0
-            while acc[arg] != best:
-                arg += 1
-            out[i] = arg
+                w = wt[j, k]
+                for t in range(blk_n):
+                    logit[t] += ft[j, t] * w
+            if k == 0:
+                best[:] = logit
+            else:
+                for t in range(blk_n):
+                    x = logit[t]
+                    gt = x > best[t]
+                    best[t] = x if gt else best[t]
+                    arg[t] = k if gt else arg[t]
+        for t in range(nb):
+            out[i0 + t] = arg[t]
 
 
 def decode_reference(f_hat: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
