@@ -8,6 +8,7 @@ paper's losses (`field_model`). Checkpoints let an interrupted fit resume bit fo
 from __future__ import annotations
 
 import functools
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -191,6 +192,7 @@ def fit_field(
         return "loss {:.3f} (ent {:.3f} max {:.3f} joint {:.3f} e2e {:.3f})".format(*curve[-1])
 
     steps = range(start, p.iterations)
+    t_fit = time.perf_counter()
     for it in report.progress(steps, "fit-field", length=len(steps), show=show):
         pick = rng.choice(len(views), min(p.views_per_step, len(views)), replace=False)
         if stream:  # same rows in the same order as in memory: the same field, bit for bit
@@ -224,6 +226,10 @@ def fit_field(
         if run.checkpoint_every and done % run.checkpoint_every == 0 and done < p.iterations:
             save_checkpoint(run.checkpoint, model, opt, rng, done, curve, inputs, p.config())
 
+    report.log(
+        f"fitted {len(steps)} iterations in {time.perf_counter() - t_fit:.1f} s "
+        f"({(time.perf_counter() - t_fit) / max(len(steps), 1):.3f} s each)"
+    )
     save_field(run.out, model.arrays(), np.asarray(curve), views, p.config(), inputs, run.force)
     refuse_if_input(run.checkpoint)
     run.checkpoint.unlink(missing_ok=True)
