@@ -59,7 +59,7 @@ class FieldParams:
     reference_losses: bool = False
     """The paper's losses as written in torch, differentiated by autograd, and torch's
     multi-tensor Adam: goi's path before the fused kernels, kept to reproduce its figures
-    (a step about 1.7x slower). The default computes the same losses and gradients in fused
+    (a step takes about twice the CPU time). The default computes the same losses and gradients in fused
     kernels with torch's fused Adam, in another rounding order (dev-room `full` mIoU over four
     seeds: docs/performance.md)."""
     no_tfcc: bool = False
