@@ -61,7 +61,7 @@ class FieldParams:
     multi-tensor Adam: goi's path before the fused kernels, kept to reproduce its figures (a
     step takes about twice the CPU time). The default computes the same losses and gradients
     in fused kernels with torch's fused Adam, in another rounding order (dev-room `full` mIoU
-    over four seeds: docs/performance.md)."""
+    over six seeds: docs/performance.md)."""
     no_tfcc: bool = False
     """Ablation (paper's 'without TFCC'): decode the low-dimensional features straight to the
     feature space with a linear decoder and a cosine loss, without the codebook. goi query
