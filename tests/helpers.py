@@ -106,3 +106,12 @@ def semantic_scene(
         "test": test,
         "cameras": {c.name: c for c in cams},
     }
+
+
+def build_or_load(path, scene, cameras, k=0, sizes=None, force=False):  # noqa: ANN001, ANN201
+    """`ensure_cache` (what fit-field does), then the cache of these views in memory."""
+    from stages.semantics.blend_cache import BlendCache, ensure_cache
+
+    cache = BlendCache.load(ensure_cache(path, scene, cameras, k, sizes, force=force))
+    cache.views = {c.name: cache.views[c.name] for c in cameras}
+    return cache

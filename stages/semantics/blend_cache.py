@@ -232,8 +232,7 @@ def cache_target(
         check_writable(p, force, "--cache")
         return False
     regular_file(p, "blend cache file (--cache)")
-    want = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
-    if _matches(p, scene.ply_digest(), scene.cameras_digest(), k, want):
+    if _matches(p, scene.ply_digest(), scene.cameras_digest(), k, cache_sizes(cameras, sizes)):
         return True
     if not force:
         raise GoiError(
@@ -242,6 +241,13 @@ def cache_target(
         )
     check_writable(p, force, "--cache")
     return False
+
+
+def cache_sizes(
+    cameras: list[Camera], sizes: dict[str, tuple[int, int]]
+) -> dict[str, tuple[int, int]]:
+    """Each view's (width, height) in the cache: its feature grid when pooled, else its image."""
+    return {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
 
 
 def cache_identity(scene: Scene, k: int, want: dict[str, tuple[int, int]]) -> dict[str, str | int]:
@@ -331,24 +337,8 @@ def ensure_cache(
     sizes = sizes or {}
     p = Path(path)
     if not cache_target(p, scene, cameras, k, sizes, force):
-        want = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
-        build_cache_file(p, scene, cameras, k, want, report)
+        build_cache_file(p, scene, cameras, k, cache_sizes(cameras, sizes), report)
     return p
-
-
-def build_or_load(
-    path: str | os.PathLike[str],
-    scene: Scene,
-    cameras: list[Camera],
-    k: int = 0,
-    sizes: dict[str, tuple[int, int]] | None = None,
-    report: Report = SILENT,
-    force: bool = False,
-) -> BlendCache:
-    """`ensure_cache`, then the cache of these views in memory."""
-    cache = BlendCache.load(ensure_cache(path, scene, cameras, k, sizes, report, force))
-    cache.views = {c.name: cache.views[c.name] for c in cameras}
-    return cache
 
 
 def cache_nbytes(path: str | os.PathLike[str], views: list[str]) -> dict[str, int]:

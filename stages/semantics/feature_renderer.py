@@ -65,26 +65,22 @@ def _gather(src, idx, out):
 
 
 @numba.njit(parallel=True, cache=True)
-def _scatter_sum(bufs, idx, out):
-    """out[idx[i]] = sum_b bufs[b, i]: reduce the block buffers straight into PLY order."""
-    for i in numba.prange(idx.shape[0]):
-        out[idx[i]] = bufs[0, i]
-        for t in range(1, bufs.shape[0]):
-            out[idx[i]] += bufs[t, i]
-
-
-@numba.njit(parallel=True, cache=True)
-def _sum_and_clear(bufs, out):
-    """out[i] = sum_b bufs[b, i], then bufs[:, i] = 0: the buffers are ready for the next step
-    without a separate pass (or fresh pages) over [blocks, G, C]."""
-    for i in numba.prange(out.shape[0]):
+def _sum_and_clear(bufs, idx, out):
+    """out[idx[i]] = sum_b bufs[b, i] (out[i] with an empty idx), then bufs[:, i] = 0: the
+    buffers are ready for the next step without a separate pass (or fresh pages) over
+    [blocks, G, C]."""
+    for i in numba.prange(bufs.shape[1]):
+        j = np.int64(i) if idx.shape[0] == 0 else np.int64(idx[i])
         for c in range(out.shape[1]):
-            out[i, c] = bufs[0, i, c]
+            out[j, c] = bufs[0, i, c]
             bufs[0, i, c] = 0.0
         for t in range(1, bufs.shape[0]):
             for c in range(out.shape[1]):
-                out[i, c] += bufs[t, i, c]
+                out[j, c] += bufs[t, i, c]
                 bufs[t, i, c] = 0.0
+
+
+_IDENTITY = np.zeros(0, np.int32)
 
 
 class GradBuffers:
@@ -226,10 +222,10 @@ class _SparseRender(torch.autograd.Function):
         buffers: GradBuffers,
     ) -> torch.Tensor:
         ctx.fr, ctx.rows, ctx.in_columns, ctx.buffers = fr, rows, in_columns, buffers  # type: ignore[attr-defined]
-        f = features.detach().numpy()
+        f = src = features.detach().numpy()
         if not in_columns:
-            f = np.empty_like(f)
-            _gather(features.detach().numpy(), fr.order, f)  # to cache column order
+            f = np.empty_like(src)
+            _gather(src, fr.order, f)  # to cache column order
         out = np.empty((len(rows), f.shape[1]), np.float32)
         _spmm_rows(fr.indptr, fr.indices, fr.weights, rows, f, out)
         return torch.from_numpy(out)
@@ -241,9 +237,6 @@ class _SparseRender(torch.autograd.Function):
         buf = ctx.buffers.get(fr.n_gaussians, g.shape[1])
         _spmm_rows_t(fr.indptr, fr.indices, fr.weights, ctx.rows, g, buf)
         grad_f = np.empty_like(buf[0])
-        if ctx.in_columns:
-            _sum_and_clear(buf, grad_f)
-        else:
-            _scatter_sum(buf, fr.order, grad_f)  # back to PLY order
-            buf[:] = 0.0
+        # summed straight into PLY order unless the caller holds the features in columns
+        _sum_and_clear(buf, _IDENTITY if ctx.in_columns else fr.order, grad_f)
         return torch.from_numpy(grad_f), None, None, None, None

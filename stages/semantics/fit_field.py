@@ -25,7 +25,7 @@ from stages.core.params import NON_NEGATIVE, check_params
 from stages.core.report import SILENT, Report
 from stages.render.constants import ALPHA_MIN
 from stages.scene.scene import Scene
-from stages.semantics.blend_cache import cache_nbytes, cache_target, ensure_cache
+from stages.semantics.blend_cache import build_cache_file, cache_nbytes, cache_sizes, cache_target
 from stages.semantics.checkpoint import check_checkpoint, load_checkpoint, save_checkpoint
 from stages.semantics.codebook import load_codebook
 from stages.semantics.feature_renderer import FeatureRenderer, GradBuffers
@@ -138,10 +138,11 @@ def fit_field(
             f"the {budget / 2**30:.2f} GiB allowed; raise it, or use fewer views or a smaller "
             "feature grid"
         )
-    cache_target(cache_path, scene, train, p.top_k, sizes, run.force)
+    reuse_cache = cache_target(cache_path, scene, train, p.top_k, sizes, run.force)
 
     fm = load_features(features_path, views, unit=False)
-    ensure_cache(cache_path, scene, train, p.top_k, sizes, report, run.force)
+    if not reuse_cache:
+        build_cache_file(cache_path, scene, train, p.top_k, cache_sizes(train, sizes), report)
     per_view = cache_nbytes(cache_path, views)
     stream = need + sum(per_view.values()) > budget
     if stream:
@@ -160,16 +161,15 @@ def fit_field(
         order = None  # read (and checked) with the first view, then reused
         for v in report.progress(views, "check cache", length=len(views)):
             order = FeatureRenderer.from_file(cache_path, [v], order=order).order
-        fr_order = order
     else:
         fr = FeatureRenderer.from_file(cache_path, views)
-        fr_order = fr.order
+        order = fr.order
     buffers = GradBuffers()
     targets = {v: m.reshape(-1, fm.dim) for v, m in fm.maps.items()}  # [cells, D] float16
     norms = {v: unit_norms(m.astype(np.float32)) for v, m in targets.items()}  # [cells]
 
     torch.manual_seed(p.seed)
-    model = FieldModel(g.count, p.sem_dim, codebook, p.no_tfcc, order=fr_order)
+    model = FieldModel(g.count, p.sem_dim, codebook, p.no_tfcc, order=order)
     opt = torch.optim.Adam(
         [
             {"params": [model.features], "lr": p.lr_features, "eps": 1e-15},

@@ -6,8 +6,7 @@ from schemas import known_schemas, validate_file
 from stages.core.artifacts import atomic_path, open_h5
 from stages.core.errors import GoiError
 from stages.scene.formats.inria import write_inria
-from stages.semantics import blend_cache as bc
-from tests.helpers import front_camera, random_vertex, write_ply
+from tests.helpers import build_or_load, front_camera, random_vertex, write_ply
 
 
 def _cache_file(tmp_path):
@@ -15,7 +14,7 @@ def _cache_file(tmp_path):
 
     write_ply(tmp_path / "point_cloud.ply", random_vertex(60))
     write_inria(tmp_path / "cameras.json", [front_camera(20, 16)])
-    bc.build_or_load(tmp_path / "c.h5", load_scene(tmp_path), [front_camera(20, 16)])
+    build_or_load(tmp_path / "c.h5", load_scene(tmp_path), [front_camera(20, 16)])
     return tmp_path / "c.h5"
 
 

@@ -8,10 +8,9 @@ from stages.core.errors import GoiError
 from stages.render.composite import blend_weights
 from stages.scene.formats.inria import write_inria
 from stages.scene.scene import load_scene
-from stages.semantics import blend_cache as bc
 from stages.semantics.feature_renderer import FeatureRenderer
 from stages.semantics.weights import morton_order, top_k
-from tests.helpers import front_camera, random_vertex, write_ply
+from tests.helpers import build_or_load, front_camera, random_vertex, write_ply
 
 
 def _scene_dir(tmp_path, n=200, seed=0):
@@ -24,7 +23,7 @@ def _scene_dir(tmp_path, n=200, seed=0):
 
 def test_cache_render_equals_direct_render(tmp_path):
     scene = _scene_dir(tmp_path)
-    cache = bc.build_or_load(tmp_path / "cache.h5", scene, scene.views("train"))
+    cache = build_or_load(tmp_path / "cache.h5", scene, scene.views("train"))
     fr = FeatureRenderer.from_cache(cache)
     f = np.random.default_rng(0).normal(size=(scene.gaussians.count, 6)).astype(np.float32)
     from stages.render.rasterizer import Rasterizer
@@ -43,7 +42,7 @@ def test_cache_render_equals_direct_render(tmp_path):
 
 def test_gradient_matches_dense_transpose_and_finite_differences(tmp_path):
     scene = _scene_dir(tmp_path, n=120, seed=2)
-    cache = bc.build_or_load(tmp_path / "cache.h5", scene, scene.views("train"))
+    cache = build_or_load(tmp_path / "cache.h5", scene, scene.views("train"))
     fr = FeatureRenderer.from_cache(cache)
     rows = np.sort(np.random.default_rng(1).choice(fr.indptr.shape[0] - 1, 700, replace=False))
     f = torch.randn(scene.gaussians.count, 3, requires_grad=True)
@@ -87,8 +86,8 @@ def test_top_k_keeps_the_largest_weights_in_order():
 
 def test_top_k_mass_is_recorded(tmp_path):
     scene = _scene_dir(tmp_path, n=400)
-    full = bc.build_or_load(tmp_path / "full.h5", scene, scene.views("train"), k=0)
-    cut = bc.build_or_load(tmp_path / "k2.h5", scene, scene.views("train"), k=2)
+    full = build_or_load(tmp_path / "full.h5", scene, scene.views("train"), k=0)
+    cut = build_or_load(tmp_path / "k2.h5", scene, scene.views("train"), k=2)
     v_full, v_cut = full.views["a"], cut.views["a"]
     assert v_full.mass_kept == 1.0
     assert 0.3 < v_cut.mass_kept < 1.0
@@ -101,18 +100,18 @@ def test_top_k_mass_is_recorded(tmp_path):
 def test_cache_is_reused_and_rebuilt_when_inputs_change(tmp_path):
     scene = _scene_dir(tmp_path)
     path = tmp_path / "cache.h5"
-    c1 = bc.build_or_load(path, scene, scene.views("train"))
+    c1 = build_or_load(path, scene, scene.views("train"))
     stamp = os.stat(path).st_mtime_ns
-    c2 = bc.build_or_load(path, scene, scene.views("train"))
+    c2 = build_or_load(path, scene, scene.views("train"))
     assert os.stat(path).st_mtime_ns == stamp
     np.testing.assert_array_equal(c1.views["b"].weights, c2.views["b"].weights)
     write_ply(tmp_path / "point_cloud.ply", random_vertex(200, degree=1, seed=9))
     scene = load_scene(tmp_path)
     # The file now holds another cache: replacing it is an overwrite, which needs --force.
     with pytest.raises(GoiError, match=r"--cache: .*cache.h5 exists .* pass --force"):
-        bc.build_or_load(path, scene, scene.views("train"))
+        build_or_load(path, scene, scene.views("train"))
     assert os.stat(path).st_mtime_ns == stamp
-    c3 = bc.build_or_load(path, scene, scene.views("train"), force=True)
+    c3 = build_or_load(path, scene, scene.views("train"), force=True)
     assert c3.ply_sha256 != c1.ply_sha256
     assert not np.array_equal(c3.views["b"].indices[:50], c1.views["b"].indices[:50])
 
@@ -127,7 +126,7 @@ def test_morton_order_is_a_permutation_that_groups_neighbours():
 
 def test_cache_columns_follow_the_recorded_order(tmp_path):
     scene = _scene_dir(tmp_path)
-    cache = bc.build_or_load(tmp_path / "c.h5", scene, scene.views("train"))
+    cache = build_or_load(tmp_path / "c.h5", scene, scene.views("train"))
     from stages.render.rasterizer import Rasterizer
 
     rast = Rasterizer.from_gaussians(scene.gaussians)
@@ -138,8 +137,8 @@ def test_cache_columns_follow_the_recorded_order(tmp_path):
 
 def test_pooled_rows_render_the_mean_of_their_pixels(tmp_path):
     scene = _scene_dir(tmp_path, n=300)
-    full = bc.build_or_load(tmp_path / "full.h5", scene, scene.views("train"))
-    pooled = bc.build_or_load(
+    full = build_or_load(tmp_path / "full.h5", scene, scene.views("train"))
+    pooled = build_or_load(
         tmp_path / "pool.h5", scene, scene.views("train"), sizes={"a": (7, 5), "b": (7, 5)}
     )
     f = torch.from_numpy(
@@ -156,7 +155,7 @@ def test_pooled_rows_render_the_mean_of_their_pixels(tmp_path):
             block = img[np.ix_(ys == cy, xs == cx)].reshape(-1, 4)
             np.testing.assert_allclose(cells[cy, cx], block.mean(0), atol=1e-5)
     # A different size is a different cache: rebuilt (with --force), not reused.
-    again = bc.build_or_load(tmp_path / "pool.h5", scene, scene.views("train"), force=True)
+    again = build_or_load(tmp_path / "pool.h5", scene, scene.views("train"), force=True)
     assert again.views["a"].width == 48
 
 
