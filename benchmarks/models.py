@@ -38,7 +38,7 @@ def _log(message: str) -> None:
 
 
 def _export(sources: list[Path], out: Path, **params: int) -> tuple[Path, float]:
-    from stages.semantics.export import ModelExportParams, ModelExportRun, export_model
+    from stages.models.export import ModelExportParams, ModelExportRun, export_model
 
     t = time.perf_counter()
     export_model(sources, ModelExportParams(**params), ModelExportRun(out))
@@ -74,7 +74,7 @@ def _median(
     repeat: int,
 ) -> None:
     """Time `call(bundle)` (the bundle and its sessions are freed on return)."""
-    from stages.semantics.bundle import load_bundle
+    from stages.models.bundle import load_bundle
 
     bundle = load_bundle(bundle_dir)
     _timed(out, key, lambda: call(bundle), median_s, repeat)
@@ -90,8 +90,8 @@ def _grounded(
 ) -> None:
     import numpy as np
 
-    from stages.semantics import res_processing as rp
-    from stages.semantics.bundle import load_bundle
+    from stages.models import res_processing as rp
+    from stages.models.bundle import load_bundle
 
     bundle = load_bundle(bundle_dir)
     g = bundle._grounded
@@ -114,7 +114,7 @@ def _grounded(
 
 
 def suite_models(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
-    from stages.semantics.export.grounding_dino import check_image
+    from stages.models.export.grounding_dino import check_image
     from stages.testing import models as M
 
     repeat = max(3, min(repeat, 5))

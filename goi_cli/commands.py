@@ -10,8 +10,8 @@ import click
 from goi_cli.options import EXISTING, build, dataclass_options, load_scene_from, scene_options
 from goi_cli.report import TERMINAL
 from stages.core.errors import GoiError
+from stages.models.export import ModelExportParams, ModelExportRun
 from stages.semantics.codebook import CodebookParams, CodebookRun
-from stages.semantics.export import ModelExportParams, ModelExportRun
 from stages.semantics.extract import ExtractParams, ExtractRun
 from stages.semantics.field_model import FieldParams
 from stages.semantics.fit_field import FieldRun
@@ -103,7 +103,7 @@ def export_model_cmd(sources: tuple[Path, ...], **kw) -> None:
     SAM (a Grounded-SAM RES). At most one encoder checkpoint and one RES per bundle. Needs
     `pip install 'goi[export]'`.
     """
-    from stages.semantics.export import export_model
+    from stages.models.export import export_model
 
     p, run = build(ModelExportParams, kw), build(ModelExportRun, kw)
     out = export_model(list(sources), p, run, TERMINAL)

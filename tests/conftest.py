@@ -64,7 +64,7 @@ def fitted(tmp_path_factory):
     return s, run
 
 
-#: The tiny Grounded-SAM bundle's settings (tests/semantics/test_grounded.py compares with them).
+#: The tiny Grounded-SAM bundle's settings (tests/models/test_grounded.py compares with them).
 GROUNDED = {"canvas": (96, 128), "box_threshold": 0.5, "max_boxes": 3, "mask_threshold": 0.0}
 
 

@@ -22,6 +22,7 @@ from stages.core.report import SILENT, Report
 from stages.evaluation.metrics import image_scores, mean_scores
 from stages.evaluation.report import esc, rel, res_row, write_page
 from stages.evaluation.room import Prompt, load_prompts
+from stages.models.bundle import load_bundle
 from stages.query.lifting import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryResult, QueryRun, run_query
@@ -29,7 +30,6 @@ from stages.query.prompts import safe_name, view_file_name
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
 from stages.scene.scene import Scene, load_scene
-from stages.semantics.bundle import load_bundle
 from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.extract import ExtractParams, ExtractRun, import_features

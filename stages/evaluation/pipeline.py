@@ -46,13 +46,13 @@ from stages.evaluation.variants import (
     TfccModel,
     render_direct,
 )
+from stages.models.bundle import Bundle, load_bundle
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.lifting import LiftParams
 from stages.query.osh import THRESHOLD, HyperplaneParams
 from stages.query.res import ResFiles, ResModel, ResSource
 from stages.render.rasterizer import Rasterizer
 from stages.scene.scene import Scene
-from stages.semantics.bundle import Bundle, load_bundle
 from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.extract import ExtractParams, ExtractRun, feature_files, import_features

@@ -122,7 +122,7 @@ def text_embedding(
             )
         vec, source = table[prompt], f"file:{Path(embeddings).name}"
     elif bundle is not None:
-        from stages.semantics.bundle import load_bundle
+        from stages.models.bundle import load_bundle
 
         b = load_bundle(bundle)
         vec, source = b.encode_text(prompt), f"bundle:{b.name}"

@@ -17,11 +17,11 @@ import numpy as np
 from stages.core.artifacts import sha256_file, write_png
 from stages.core.errors import GoiError, warn
 from stages.core.files import make_dir
+from stages.models.bundle import Bundle, load_bundle
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import check_plain_name, safe_name, view_file_name
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
-from stages.semantics.bundle import Bundle, load_bundle
 from stages.semantics.decode import SemanticRenderer
 
 

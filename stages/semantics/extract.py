@@ -176,7 +176,7 @@ def encode_views(
 ) -> Path:
     """Write the features artifact by running a bundle's image encoder on the images."""
     check_params(p)
-    from stages.semantics.bundle import load_bundle
+    from stages.models.bundle import load_bundle
 
     bundle = load_bundle(bundle_dir)
     names = [c.name for c in scene.views(p.split)]

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from goi_cli.main import main
+from stages.models.bundle import load_bundle
 from stages.query.prompts import safe_name
 from stages.render.rasterizer import Rasterizer
 from stages.scene.gaussians import load_ply
 from stages.scene.images import read_mask
-from stages.semantics.bundle import load_bundle
 
 PROMPT = "the red box"
 

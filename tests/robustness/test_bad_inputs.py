@@ -197,7 +197,7 @@ def _res(mutate):
 
 def _bundle(change):
     def make(s, tmp):
-        from tests.semantics.test_bundle import make_bundle
+        from tests.models.test_bundle import make_bundle
 
         root, _, _, manifest = make_bundle(tmp / "bundle")
         change(root, manifest)
@@ -221,7 +221,7 @@ def _manifest(edit):
 
 def _onnx(model, args, inputs, outputs):
     def change(root, manifest):
-        from tests.semantics.test_bundle import _export
+        from tests.models.test_bundle import _export
 
         _export(model, args, root / "image_encoder.onnx", inputs, outputs, None)
 

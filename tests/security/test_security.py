@@ -82,7 +82,7 @@ def test_onnx_custom_operators_are_never_loaded(tmp_path):
     import onnx
     from onnx import TensorProto, helper
 
-    from tests.semantics.test_bundle import make_bundle
+    from tests.models.test_bundle import make_bundle
 
     root, _, _, _ = make_bundle(tmp_path / "b")
     node = helper.make_node("Evil", ["image"], ["features"], domain="com.evil")
@@ -95,7 +95,7 @@ def test_onnx_custom_operators_are_never_loaded(tmp_path):
         graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid("com.evil", 1)]
     )
     onnx.save(model, str(root / "image_encoder.onnx"))
-    from stages.semantics.bundle import load_bundle
+    from stages.models.bundle import load_bundle
 
     with pytest.raises(GoiError, match="not a loadable ONNX model"):
         load_bundle(root).encode_image(np.zeros((32, 32, 3), np.uint8))

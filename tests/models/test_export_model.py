@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from goi_cli.main import main
-from stages.semantics.bundle import _prepare, load_bundle
+from stages.models.bundle import _prepare, load_bundle
 from tests.helpers import DEV_ROOM
 
 transformers = pytest.importorskip("transformers")
@@ -66,7 +66,7 @@ def _image(seed=0, h=40, w=50):
 
 
 def test_clip_bundle_matches_torch(clip):
-    from stages.semantics.export.clip import DenseCLIP
+    from stages.models.export.clip import DenseCLIP
 
     model, tok, bundle = clip
     assert bundle.dim == 16
@@ -95,7 +95,7 @@ def test_clip_bundle_matches_torch(clip):
 def test_dense_tap_on_class_token_is_the_global_embedding(clip):
     """The value-only path is attention with every token attending to itself: on the class
     token alone they coincide, and the tap's head on the class token is CLIP's own embedding."""
-    from stages.semantics.export.clip import DenseCLIP
+    from stages.models.export.clip import DenseCLIP
 
     model, _, _ = clip
     dense = DenseCLIP.build(model, 32)

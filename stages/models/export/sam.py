@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 
 from stages.core.errors import GoiError
-from stages.semantics import res_processing as rp
-from stages.semantics.export.common import check, image_stats, onnx_export
-from stages.semantics.export.grounding_dino import check_image
+from stages.models import res_processing as rp
+from stages.models.export.common import check, image_stats, onnx_export
+from stages.models.export.grounding_dino import check_image
 
 
 def resize_input(model: Any, size: int) -> None:

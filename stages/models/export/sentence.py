@@ -8,9 +8,9 @@ from pathlib import Path
 from typing import Any
 
 from stages.core.errors import GoiError
-from stages.semantics.export.clip import export_text, text_spec
-from stages.semantics.export.common import checkpoint_json, write_tokenizer
-from stages.semantics.onnx_io import Tokens
+from stages.models.export.clip import export_text, text_spec
+from stages.models.export.common import checkpoint_json, write_tokenizer
+from stages.models.onnx_io import Tokens
 
 
 def pooling_mode(src: Path, modules: list) -> str:

@@ -4,7 +4,7 @@ The I/O contract (docs/models.md): the image encoder takes [1, 3, H, W] float32 
 the manifest says) and returns dense features [1, D, h, w]; the text encoder takes token ids
 [1, L] int64 (and optionally an attention mask) and returns [1, D]. A bundle's RES is either a
 single model (`res`: image + prompt -> mask scores, e.g. CLIPSeg) or a Grounded-SAM pipeline
-(`grounded`: detector + SAM, `stages.semantics.grounded`). goi checks each model's inputs and
+(`grounded`: detector + SAM, `stages.models.grounded`). goi checks each model's inputs and
 outputs against the manifest before running it. No custom-operator library is ever registered,
 and manifest paths may not leave the bundle directory.
 """
@@ -24,9 +24,9 @@ from stages.core.arrays import normalise
 from stages.core.artifacts import sha256_files
 from stages.core.errors import GoiError
 from stages.core.files import read_json
-from stages.semantics import res_processing as rp
-from stages.semantics.grounded import GroundedSam, Grounding, check_spec
-from stages.semantics.onnx_io import Tokens, check_inputs_named, check_io, inside, session
+from stages.models import res_processing as rp
+from stages.models.grounded import GroundedSam, Grounding, check_spec
+from stages.models.onnx_io import Tokens, check_inputs_named, check_io, inside, session
 
 MANIFEST = "manifest.json"
 #: How an image is resized to a model's `size`: OpenCV's area filter (schema 1.0's only way),

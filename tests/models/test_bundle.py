@@ -8,8 +8,8 @@ import torch
 
 from goi_cli.main import main
 from stages.core.errors import GoiError
+from stages.models.bundle import load_bundle
 from stages.scene.formats.inria import write_inria
-from stages.semantics.bundle import load_bundle
 from stages.semantics.features import load_features
 from tests.helpers import front_camera, random_vertex, write_ply
 

@@ -13,10 +13,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from stages.semantics import res_processing as rp
-from stages.semantics.export.common import check, image_stats, onnx_export, write_tokenizer
-from stages.semantics.export.grounding_dino import check_image
-from stages.semantics.onnx_io import Tokens
+from stages.models import res_processing as rp
+from stages.models.export.common import check, image_stats, onnx_export, write_tokenizer
+from stages.models.export.grounding_dino import check_image
+from stages.models.onnx_io import Tokens
 
 #: CLIPSeg's processor size when preprocessor_config.json does not say.
 DEFAULT_SIZE = 352

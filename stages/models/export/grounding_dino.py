@@ -27,14 +27,14 @@ from typing import Any
 
 import numpy as np
 
-from stages.semantics import res_processing as rp
-from stages.semantics.export.common import (
+from stages.models import res_processing as rp
+from stages.models.export.common import (
     check_detections,
     image_stats,
     onnx_export,
     write_tokenizer,
 )
-from stages.semantics.onnx_io import Tokens
+from stages.models.onnx_io import Tokens
 
 INPUTS = ("pixel_values", "pixel_mask", "input_ids", "attention_mask", "token_type_ids")
 OUTPUTS = ("logits", "pred_boxes")

@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from stages.core.errors import GoiError
-from stages.semantics.export.common import check, image_stats, onnx_export, write_tokenizer
-from stages.semantics.onnx_io import Tokens
+from stages.models.export.common import check, image_stats, onnx_export, write_tokenizer
+from stages.models.onnx_io import Tokens
 
 # OpenAI CLIP's preprocessing, used when the checkpoint has no preprocessor_config.json.
 CLIP_MEAN = [0.48145466, 0.4578275, 0.40821073]

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from stages.core.errors import GoiError
-from stages.semantics import res_processing as rp
-from stages.semantics.onnx_io import Tokens, check_inputs_named, check_io, inside, session
+from stages.models import res_processing as rp
+from stages.models.onnx_io import Tokens, check_inputs_named, check_io, inside, session
 
 #: The models of a grounded pipeline, as manifest keys.
 PARTS = ("detector", "sam_encoder", "sam_decoder")

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from goi_cli.main import main
-from stages.semantics import res_processing as rp
-from stages.semantics.bundle import load_bundle
-from stages.semantics.onnx_io import session
+from stages.models import res_processing as rp
+from stages.models.bundle import load_bundle
+from stages.models.onnx_io import session
 from tests.conftest import GROUNDED
 
 transformers = pytest.importorskip("transformers")
@@ -33,7 +33,7 @@ def _diff(got, want):
 def test_text_masks_equal_transformers():
     from transformers.models.grounding_dino import modeling_grounding_dino as mg
 
-    from stages.semantics.export.grounding_dino import text_masks
+    from stages.models.export.grounding_dino import text_masks
 
     special = torch.tensor(mg.SPECIAL_TOKENS)
     vocab = torch.tensor([101, 102, 1012, 1029, 5, 6, 7, 8])
@@ -55,7 +55,7 @@ def test_text_masks_equal_transformers():
     ],
 )
 def test_detector_equals_torch(res_checkpoints, res_bundles, ids, valid):
-    from stages.semantics.export.grounding_dino import detector_module
+    from stages.models.export.grounding_dino import detector_module
 
     model = _load(transformers.GroundingDinoForObjectDetection, res_checkpoints["detector"])
     sess = session(res_bundles["grounded"] / "detector.onnx")
@@ -92,7 +92,7 @@ def test_detector_canvas_is_fixed(res_bundles):
 
 
 def _sam_matches(model, enc, dec, size):
-    from stages.semantics.export.sam import modules
+    from stages.models.export.sam import modules
 
     encoder, decoder = modules(model)
     x = torch.randn(1, 3, size, size, generator=torch.Generator().manual_seed(4))
@@ -117,7 +117,7 @@ def test_sam_encoder_and_decoder_equal_torch(res_checkpoints, res_bundles):
 
 def test_sam_at_a_smaller_input(res_checkpoints, tmp_path):
     """--sam-size resamples the position embeddings; the graphs equal the resampled model."""
-    from stages.semantics.export.sam import export_sam, resize_input
+    from stages.models.export.sam import export_sam, resize_input
 
     ck = res_checkpoints
     sam = _load(transformers.SamModel, ck["sam"])
@@ -135,7 +135,7 @@ def test_sam_at_a_smaller_input(res_checkpoints, tmp_path):
 
 @pytest.mark.parametrize("ids", [[98, 5, 6, 7, 99], [98, 10, 99], list(range(2, 14)) + [99]])
 def test_clipseg_equals_torch(res_checkpoints, res_bundles, ids):
-    from stages.semantics.export.clipseg import res_module
+    from stages.models.export.clipseg import res_module
 
     model = _load(transformers.CLIPSegForImageSegmentation, res_checkpoints["clipseg"])
     sess = session(res_bundles["clipseg"] / "res.onnx")

@@ -149,7 +149,7 @@ def run_onnx(path: Path, feed: dict[str, np.ndarray]) -> list[np.ndarray]:
 
     opts = ort.SessionOptions()
     opts.log_severity_level = 3
-    opts.enable_cpu_mem_arena = False  # the big graphs: see stages.semantics.onnx_io.session
+    opts.enable_cpu_mem_arena = False  # the big graphs: see stages.models.onnx_io.session
     opts.enable_mem_pattern = False
     sess = ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
     return list(sess.run(None, feed))

@@ -2,7 +2,7 @@
 
 These are what transformers' image processors and post-processing functions do for Grounding
 DINO, SAM and CLIPSeg, re-written so that running a bundle needs neither Pillow, torch nor
-transformers. tests/semantics/test_res_processing.py holds each function to the processor's
+transformers. tests/models/test_res_processing.py holds each function to the processor's
 own output (the Pillow backends, transformers' reference implementations): resizing is bit-exact
 with Pillow, normalised pixels within 1e-6, boxes and scores equal, SAM's mask logits within
 3e-6. Images are [H, W, 3] uint8 RGB throughout; sizes are (height, width).

@@ -12,8 +12,8 @@ import torch
 
 from goi_cli.main import main
 from stages.core.errors import GoiError, GoiWarning
-from stages.semantics import res_processing as rp
-from stages.semantics.bundle import load_bundle
+from stages.models import res_processing as rp
+from stages.models.bundle import load_bundle
 from tests.conftest import GROUNDED
 
 transformers = pytest.importorskip("transformers")
@@ -178,7 +178,7 @@ def test_a_checkpoint_without_tokenizer_json_gets_one_built(tmp_path):
     """Older checkpoints ship only the slow tokenizer's files: transformers converts them."""
     from tokenizers import Tokenizer
 
-    from stages.semantics.export.common import tokenizer_json
+    from stages.models.export.common import tokenizer_json
 
     (tmp_path / "vocab.txt").write_text("[PAD]\n[UNK]\n[CLS]\n[SEP]\n[MASK]\na\nred\nchair\n.\n")
     (tmp_path / "tokenizer_config.json").write_text('{"tokenizer_class": "BertTokenizer"}')

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.semantics import res_processing as rp
+from stages.models import res_processing as rp
 
 PIL = pytest.importorskip("PIL.Image")
 transformers = pytest.importorskip("transformers")

@@ -28,8 +28,8 @@ from stages.core.errors import GoiError
 from stages.core.files import make_dir
 from stages.core.params import FRACTION, Range, check_params
 from stages.core.report import SILENT, Report
-from stages.semantics.bundle import MANIFEST, load_bundle
-from stages.semantics.export.common import (
+from stages.models.bundle import MANIFEST, load_bundle
+from stages.models.export.common import (
     checkpoint_json,
     has_weights,
     load_model,
@@ -191,25 +191,25 @@ def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report:
 
     enc = plan.get("encoder")
     if enc is not None and enc.kind == "clip":
-        from stages.semantics.export.clip import export_clip
+        from stages.models.export.clip import export_clip
 
         assert enc.tokenizer is not None
         done(export_clip(enc.take(), enc.path, tmp, enc.tokenizer, opts.image_size, opts.opset))
     elif enc is not None:
-        from stages.semantics.export.sentence import export_sentence
+        from stages.models.export.sentence import export_sentence
 
         assert enc.tokenizer is not None and enc.modules is not None
         done(export_sentence(enc.take(), enc.path, tmp, enc.tokenizer, enc.modules, opts.opset))
     if "clipseg" in plan:
-        from stages.semantics.export.clipseg import export_clipseg
+        from stages.models.export.clipseg import export_clipseg
 
         s = plan["clipseg"]
         assert s.tokenizer is not None
         thr = opts.res_threshold
         done(export_clipseg(s.take(), s.path, tmp, s.tokenizer, thr, opts.opset))
     if "detector" in plan:
-        from stages.semantics.export.grounding_dino import export_detector
-        from stages.semantics.export.sam import export_sam
+        from stages.models.export.grounding_dino import export_detector
+        from stages.models.export.sam import export_sam
 
         d, s = plan["detector"], plan["sam"]
         assert d.tokenizer is not None
