@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
+from stages.core.errors import GoiError
 from stages.evaluation.benchmarks.common import BenchmarkScene, Frame, Query, pil_nearest, read_grey
 from stages.evaluation.benchmarks.protocols import (
     closed_set,
@@ -131,3 +132,13 @@ def test_aggregation_orders_differ_as_the_references_do():
         f.gts = {q: g.astype(np.uint8) * 255 for q, g in f.gts.items()}
     lm, _ = protocol_scores("lerf-mask", scene, preds)
     assert lm["miou"] == pytest.approx(0.75)  # per prompt over views, then over prompts
+
+
+def test_a_prediction_of_another_size_is_refused_where_the_protocol_does_not_resize():
+    scene, preds = _scene()
+    preds["A"]["f1"] = np.zeros((3, 3), bool)
+    for f in scene.frames:
+        f.boxes = {q: np.array([[0, 0, 1, 1]]) for q in f.gts}
+    with pytest.raises(GoiError, match="a prediction of 3x3 for the 2x2 ground truth of 'A'"):
+        protocol_scores("lerf-ovs", scene, preds)
+    assert protocol_scores("goi-m360", scene, preds)[0]["miou"] >= 0  # resized bilinear

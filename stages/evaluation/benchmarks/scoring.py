@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.evaluation.benchmarks.common import BenchmarkScene
+from stages.core.errors import GoiError
+from stages.evaluation.benchmarks.common import BenchmarkScene, Frame
 from stages.evaluation.benchmarks.protocols import (
     binary_iou,
     closed_set,
@@ -72,8 +73,15 @@ def protocol_scores(
     """(the scene's figures under the benchmark's protocol, per query and frame detail)."""
     detail: dict[str, dict[str, dict]] = {q.id: {} for q in scene.queries}
 
-    def pred(qid: str, f) -> np.ndarray:  # noqa: ANN001
-        return predictions[qid][f.camera.name]
+    def pred(qid: str, f: Frame) -> np.ndarray:
+        p = predictions[qid][f.camera.name]
+        if benchmark in ("lerf-ovs", "3d-ovs") and p.shape != f.gts[qid].shape[:2]:
+            raise GoiError(
+                f"{f.source}: a prediction of {p.shape[1]}x{p.shape[0]} for the "
+                f"{f.gts[qid].shape[1]}x{f.gts[qid].shape[0]} ground truth of {qid!r}; the "
+                f"{benchmark} protocol scores them at one size and resizes nothing"
+            )
+        return p
 
     if benchmark == "lerf-ovs":
         ious, goi_ious, hits = [], [], 0
