@@ -8,10 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.core.artifacts import write_png
+from stages.core.files import make_dir
 from stages.evaluation.benchmarks.common import BenchmarkScene
 from stages.evaluation.benchmarks.published import PUBLISHED
 from stages.evaluation.benchmarks.scoring import PROTOCOLS
-from stages.evaluation.report import esc, fmt, write_page
+from stages.evaluation.report import esc, fmt, page_files_dir, rel, write_page
+from stages.query.prompts import safe_name
 
 GOI_ROW = "goi (paper's per-image IoU/mPA/mP, goi's metrics.py; query -> mean)"
 
@@ -49,8 +52,17 @@ def _published(benchmark: str, scene: str, keys: list[str]) -> list[tuple[str, s
     ]
 
 
-def benchmark_page(path: Path, doc: dict, scenes: dict[str, BenchmarkScene]) -> None:
-    """Write the page (tables only; the per-frame figures are in report.json)."""
+def benchmark_page(
+    path: Path,
+    doc: dict,
+    scenes: dict[str, BenchmarkScene],
+    thumbs: dict[tuple[str, str], dict[str, tuple[str, np.ndarray]]],
+) -> None:
+    """Write the page and its images: the tables, and per scene, query and variant the first
+    frame's prediction (red) against the ground truth (green outline); every frame's figures
+    are in report.json."""
+    files = page_files_dir(path)
+    make_dir(files, "--html")
     b = doc["benchmark"]
     name, protocol = b["name"], b["protocol"]
     keys = list(
@@ -71,6 +83,8 @@ def benchmark_page(path: Path, doc: dict, scenes: dict[str, BenchmarkScene]) -> 
         f" · fixed threshold {fmt(doc['threshold'])}</p>",
         f"<p class='key'>protocol: {esc(protocol)}. How goi's binary answer enters it: "
         f"{esc(notes['how_goi_enters'])}. The goi rows: {esc(notes['goi'])}.</p>",
+        "<p class='key'>Figures: each query's first frame per variant, goi's prediction in red "
+        "on goi's rendering, the ground truth outlined in green.</p>",
     ]
     pub = PUBLISHED.get(name)
     if pub is None:
@@ -115,6 +129,19 @@ def benchmark_page(path: Path, doc: dict, scenes: dict[str, BenchmarkScene]) -> 
                 cells.append(f"<td>{fmt(float(np.mean(ious)) if ious else None)}</td>")
             body.append(f"<tr><td class='l'>{esc(q.text)}</td>{''.join(cells)}</tr>")
         body.append("</table>")
+        for q in scenes[scene].queries:
+            figs = []
+            for v in variants:
+                if q.id not in thumbs.get((scene, v), {}):
+                    continue
+                key, img = thumbs[(scene, v)][q.id]
+                name = f"{safe_name(scene)}_{safe_name(q.id)}_{safe_name(v)}.png"
+                write_png(files / name, img, force=True)
+                figs.append(
+                    f"<figure><img src='{rel(files / name, path)}' alt='{esc(v)}'>{esc(v)}: "
+                    f"{esc(q.text)}, frame {esc(key)}</figure>"
+                )
+            body.append("<div>" + "".join(figs) + "</div>")
     body.append("<h2>Timings (s)</h2><table>")
     for k, t in doc["timings_s"].items():
         body.append(f"<tr><td class='l'>{esc(k)}</td><td>{fmt(float(t))}</td></tr>")

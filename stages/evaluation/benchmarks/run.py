@@ -36,6 +36,7 @@ from stages.evaluation.benchmarks.replica_goi import read_replica_goi
 from stages.evaluation.benchmarks.scoring import (
     PROTOCOLS,
     goi_scores,
+    gt_bool,
     json_figures,
     protocol_scores,
 )
@@ -51,8 +52,9 @@ from stages.evaluation.pipeline import (
     _res_bundle,
     _Timer,
 )
+from stages.evaluation.report import overlay_pair, page_files_dir
 from stages.evaluation.room import Prompt, Room
-from stages.evaluation.variants import FIELD_KIND
+from stages.evaluation.variants import FIELD_KIND, TfccModel
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.lifting import LiftParams
 from stages.query.osh import HyperplaneParams
@@ -219,7 +221,7 @@ def run_benchmark(
     inputs = [root, *(t for _, t in specs), features, res, emb_path, run.bundle]
     outputs = {
         "--out": run.out,
-        "--html": run.html,
+        "--html": [run.html, page_files_dir(run.html)] if run.html is not None else None,
         "--work": [work / s.bench.name / f for s in scenes for f in WORK_FILES],
     }
     refuse_inputs(outputs, inputs)
@@ -241,6 +243,7 @@ def run_benchmark(
         "benchmark": {"name": benchmark, "protocol": PROTOCOLS[benchmark][0], "scenes": {}},
         "timings_s": timer.t,
     }
+    thumbs: dict[tuple[str, str], dict[str, tuple[str, np.ndarray]]] = {}
     for s, sources in zip(scenes, sources_of, strict=True):
         name = s.bench.name
         report.log(
@@ -288,15 +291,47 @@ def run_benchmark(
             entry["variants"][variant] = json_figures(
                 {"protocol": proto, "goi": own, "queries": detail}
             )
+            if run.html is not None:
+                thumbs[(name, variant)] = thumbnails(s.bench, preds, tfcc)
         doc["benchmark"]["scenes"][name] = entry
     _means(doc, variants)
     with staged_outputs():
         if run.html is not None:
             with timer("html"):
-                benchmark_page(Path(run.html), doc, scenes_of(scenes))
+                benchmark_page(Path(run.html), doc, scenes_of(scenes), thumbs)
         validate_json(doc, "goi.eval", str(run.out))
         write_json(run.out, doc, force=True)
     return EvalResult(doc, Path(run.out), run.html)
+
+
+def thumbnails(
+    bench: BenchmarkScene, preds: dict[str, dict[str, np.ndarray]], tfcc: TfccModel | None
+) -> dict[str, tuple[str, np.ndarray]]:
+    """For the page: each query's first frame, its prediction (red) on goi's rendering against
+    the ground truth (green outline), at most THUMB px wide ({query id: (frame, [h, w, 3])});
+    small, so that a benchmark's many frames are not held in memory."""
+    import cv2
+
+    out = {}
+    for q in bench.queries:
+        f = next((f for f in bench.frames if q.id in f.gts), None)
+        if f is None:
+            continue
+        cam = f.camera
+        view = tfcc.views.get(cam.name) if tfcc is not None else None
+        rgb = view.rgb if view is not None and view.rgb is not None else None
+        if rgb is None:
+            rgb = np.full((cam.height, cam.width, 3), 0.2, np.float32)
+        img = overlay_pair(rgb, preds[q.id][cam.name], gt_bool(f.gts[q.id]))
+        if img.shape[1] > THUMB:
+            h = max(1, round(img.shape[0] * THUMB / img.shape[1]))
+            img = cv2.resize(img, (THUMB, h), interpolation=cv2.INTER_AREA)
+        out[q.id] = (f.key, img)
+    return out
+
+
+#: the page's figures' width in pixels
+THUMB = 320
 
 
 def scenes_of(scenes: list[BenchScene]) -> dict[str, BenchmarkScene]:
