@@ -52,6 +52,7 @@ def test_benchmark_scored_end_to_end(tmp_path, benchmark, capsys):
     assert r["timings_s"]["read_annotations"] >= 0 and r["timings_s"]["metrics"] >= 0
     page = html.read_text()
     assert r["benchmark"]["protocol"] in page and "toy" in page
+    assert f"<title>goi eval --benchmark {benchmark}</title>" in page
     figs = sorted((tmp_path / "r_files").glob("*.png"))
     assert len(figs) == len(s["queries"]) * len(variants.split(","))
     assert all(f"r_files/{f.name}" in page for f in figs)

@@ -135,10 +135,10 @@ def benchmark_page(
                 if q.id not in thumbs.get((scene, v), {}):
                     continue
                 key, img = thumbs[(scene, v)][q.id]
-                name = f"{safe_name(scene)}_{safe_name(q.id)}_{safe_name(v)}.png"
-                write_png(files / name, img, force=True)
+                png = f"{safe_name(scene)}_{safe_name(q.id)}_{safe_name(v)}.png"
+                write_png(files / png, img, force=True)
                 figs.append(
-                    f"<figure><img src='{rel(files / name, path)}' alt='{esc(v)}'>{esc(v)}: "
+                    f"<figure><img src='{rel(files / png, path)}' alt='{esc(v)}'>{esc(v)}: "
                     f"{esc(q.text)}, frame {esc(key)}</figure>"
                 )
             body.append("<div>" + "".join(figs) + "</div>")
