@@ -83,6 +83,7 @@ def test_lerf_ovs_refusals(tmp_path, capsys):
     first.write_text(json.dumps({**doc, "info": {**doc["info"], "name": "frame_00099.jpg"}}))
     _refused(_argv(s, "lerf-ovs", out), capsys, "this frame has no camera")
     first.write_text(json.dumps(doc))
+    _refused([*_argv(s, "lerf-ovs", out), "--entries", "50000"], capsys, "--entries: 50000")
     emb = json.loads(s["embeddings"].read_text())
     emb.pop("red box")
     s["embeddings"].write_text(json.dumps(emb))

@@ -46,6 +46,7 @@ from stages.evaluation.pipeline import (
     EvalParams,
     EvalResult,
     EvalRun,
+    _check_entries,
     _check_work,
     _chosen_variants,
     _fit_models,
@@ -208,6 +209,7 @@ def run_benchmark(
                 f"{first}: the features have {dim} dimensions but the text embeddings "
                 f"({emb_path}) {text_dim}; image and text features must share one space"
             )
+        _check_entries(p, files)  # --entries against the cells k-means will sample
         scenes.append(
             BenchScene(bench, room, feats, per_scene(res, name, len(specs), "--res-masks"))
         )
