@@ -45,8 +45,8 @@ def polygon_mask(h: int, w: int, polygon: object, where: str) -> np.ndarray:
     except (TypeError, ValueError):
         raise GoiError(f"{where}: 'segmentation' is not a list of [x, y] points") from None
     pts = pts.reshape(-1, 2) if pts.size % 2 == 0 and pts.ndim >= 1 else pts
-    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 3 or not np.isfinite(pts).all():
-        raise GoiError(f"{where}: 'segmentation' must be one polygon of >= 3 finite [x, y] points")
+    if pts.ndim != 2 or pts.shape[1] != 2 or not len(pts) or not np.isfinite(pts).all():
+        raise GoiError(f"{where}: 'segmentation' must be one polygon of finite [x, y] points")
     if (pts < 0).any() or (pts[:, 0] > w).any() or (pts[:, 1] > h).any():
         warn(
             f"{where}: the polygon reaches outside the {w}x{h} image; filled clipped to it, as "
