@@ -8,6 +8,7 @@ import click
 
 from goi_cli.options import build, dataclass_options
 from goi_cli.report import TERMINAL
+from stages.evaluation.benchmarks.run import BENCHMARKS
 from stages.evaluation.demo import DemoParams, DemoRun
 from stages.evaluation.pipeline import EvalParams, EvalRun
 
@@ -26,21 +27,74 @@ from stages.evaluation.pipeline import EvalParams, EvalRun
     default=None,
     help="RES masks: DIR/<prompt id>/<view>.png on training views (or --bundle DIR).",
 )
+@click.option(
+    "--benchmark",
+    type=click.Choice(BENCHMARKS),
+    default=None,
+    help="Score a public benchmark instead of a room: ROOM is its downloaded copy "
+    "(docs/benchmarks.md, 'Public benchmarks'); needs --scene and --text-embeddings.",
+)
+@click.option(
+    "--scene",
+    "scenes",
+    multiple=True,
+    help="With --benchmark: a trained 3DGS scene, NAME=DIR (NAME the benchmark's scene; "
+    "repeatable). --features and --res-masks then hold one NAME/ folder per scene.",
+)
 @dataclass_options(EvalRun)
 @dataclass_options(EvalParams)
-def eval_cmd(room: Path, features: Path, res_masks: Path | None, **kw) -> None:
+def eval_cmd(
+    room: Path,
+    features: Path,
+    res_masks: Path | None,
+    benchmark: str | None,
+    scenes: tuple[str, ...],
+    **kw,
+) -> None:
     """Run the whole pipeline on a benchmark ROOM (layout: a room README) and score the masks on
     its TEST views with the paper's metrics, for the four ablation variants. The RES masks are
-    files (--res-masks) or made by a bundle's RES model (--bundle)."""
+    files (--res-masks) or made by a bundle's RES model (--bundle). With --benchmark NAME, ROOM
+    is a public benchmark (lerf-ovs, lerf-mask, 3d-ovs, goi-m360, replica-goi) scored by its
+    own protocol and by goi's metrics."""
     from stages.evaluation.pipeline import run_eval
 
     p, run = build(EvalParams, kw), build(EvalRun, kw)
+    if benchmark is not None or scenes:
+        _benchmark(benchmark, room, scenes, features, res_masks, p, run)
+        return
     r = run_eval(room, features, res_masks, p, run, TERMINAL)
     click.echo(f"{'variant':14s} {'mIoU':>7s} {'mPA':>7s} {'mP':>7s} {'mIoU3D':>7s}")
     for v, s in r.report["variants"].items():
         cells = [s["miou"], s["mpa"], s["mp"], s.get("miou_3d")]
         click.echo(f"{v:14s} " + " ".join("      -" if c is None else f"{c:7.4f}" for c in cells))
     click.echo(f"report: {r.out}" + (f"\nhtml:   {r.html}" if r.html else ""))
+
+
+def _benchmark(
+    name: str | None,
+    root: Path,
+    scenes: tuple[str, ...],
+    features: Path,
+    res_masks: Path | None,
+    p: EvalParams,
+    run: EvalRun,
+) -> None:
+    from stages.core.errors import GoiError
+    from stages.evaluation.benchmarks.run import run_benchmark
+
+    if name is None:
+        raise GoiError("--scene: only with --benchmark NAME")
+    r = run_benchmark(name, root, scenes, features, res_masks, p, run, TERMINAL)
+    b = r.report["benchmark"]
+    click.echo(f"{name}: protocol {b['protocol']}; mean over {len(b['scenes'])} scene(s)")
+    for v, s in r.report["variants"].items():
+        proto = " ".join(f"{k} {_cell(x)}" for k, x in s["protocol"].items())
+        click.echo(f"{v:14s} {proto} | goi mIoU {_cell(s['goi']['miou'])}")
+    click.echo(f"report: {r.out}" + (f"\nhtml:   {r.html}" if r.html else ""))
+
+
+def _cell(x: float | None) -> str:
+    return "-" if x is None else f"{x:.4f}"
 
 
 @click.command("demo")

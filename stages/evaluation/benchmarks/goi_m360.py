@@ -1,0 +1,62 @@
+"""GOI's Mip-NeRF360 set (Quyans/GOI-Hyperplane, eval_seg.py `m360`).
+
+<root>/<scene>/<prompt>/masks/<image>.<ext>: the prompt folder is the query with underscores
+(sofa_in_dark_green); the image keeps its capture name (DSCF4667); ground truth > 0 (read as
+cv2 greys). A mask whose image has no camera is skipped with a warning, as the script skips a
+missing rendering.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from stages.core.errors import GoiError
+from stages.evaluation.benchmarks.common import (
+    BenchmarkScene,
+    Frame,
+    Query,
+    read_grey_cv2,
+    require_dir,
+    scaled_to,
+    skip,
+)
+from stages.query.prompts import check_plain_name
+from stages.scene.cameras import IMAGE_EXTS, Camera
+
+SCENES = ("room", "bonsai", "garden", "kitchen")
+
+
+def read_goi_m360(root: Path, scene: str, cameras: list[Camera]) -> BenchmarkScene:
+    d = require_dir(root / scene, "GOI's Mip-NeRF360 set keeps <scene>/<prompt>/masks/ there")
+    by_name = {c.name: c for c in cameras}
+    out = BenchmarkScene(scene, d, [], [])
+    frames: dict[str, Frame] = {}
+    for prompt in sorted(p for p in d.iterdir() if p.is_dir()):
+        masks = require_dir(prompt / "masks", "each prompt folder holds masks/<image>")
+        qid = check_plain_name(prompt.name, str(prompt))
+        q = Query(qid, prompt.name.replace("_", " "))
+        files = sorted(p for p in masks.iterdir() if p.suffix in IMAGE_EXTS)
+        if not files:
+            raise GoiError(f"{masks}: no mask images")
+        out.queries.append(q)
+        for f in files:
+            name = f.name.split(".")[0]
+            cam = by_name.get(name)
+            if cam is None:
+                skip(out, f"{f}: no camera named {name!r}; skipped, as eval_seg.py skips it")
+                continue
+            gt = read_grey_cv2(f, "ground-truth mask") > 0
+            frame = frames.get(name)
+            if frame is None:
+                frame = frames[name] = Frame(
+                    name, scaled_to(cam, gt.shape[1], gt.shape[0], str(f)), masks, {}
+                )
+            elif gt.shape != (frame.camera.height, frame.camera.width):
+                raise GoiError(
+                    f"{f}: {gt.shape[1]}x{gt.shape[0]}, another prompt's mask of {name} differs"
+                )
+            frame.gts[q.id] = gt
+    if not out.queries:
+        raise GoiError(f"{d}: no <prompt>/masks/ folders")
+    out.frames = list(frames.values())
+    return out

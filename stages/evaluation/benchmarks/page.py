@@ -1,0 +1,149 @@
+"""The HTML page of `goi eval --benchmark`: per scene and for the mean over scenes, one row per
+variant and metric family, each labelled with the protocol it follows; the published figures
+beside them with their source."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from stages.core.artifacts import write_png
+from stages.core.files import make_dir
+from stages.evaluation.benchmarks.common import BenchmarkScene
+from stages.evaluation.benchmarks.published import PUBLISHED
+from stages.evaluation.benchmarks.scoring import PROTOCOLS
+from stages.evaluation.report import esc, fmt, page_files_dir, rel, write_page
+from stages.query.prompts import safe_name
+
+GOI_ROW = "goi (paper's per-image IoU/mPA/mP, goi's metrics.py; query -> mean)"
+
+
+def _table(rows: list[tuple[str, str, dict]], keys: list[str]) -> str:
+    head = "".join(f"<th>{esc(k)}</th>" for k in keys)
+    out = [f"<table><tr><th class='l'>variant / method</th><th class='l'>protocol</th>{head}</tr>"]
+    for label, protocol, figs in rows:
+        cells = "".join(f"<td>{fmt(figs.get(k))}</td>" for k in keys)
+        out.append(
+            f"<tr><td class='l'>{esc(label)}</td><td class='l'>{esc(protocol)}</td>{cells}</tr>"
+        )
+    return "".join(out) + "</table>"
+
+
+def _rows(figs_of: dict, protocol: str) -> list[tuple[str, str, dict]]:
+    rows = []
+    for v, figs in figs_of.items():
+        rows.append((v, protocol, figs["protocol"]))
+        rows.append((v, GOI_ROW, figs["goi"]))
+    return rows
+
+
+def _published(benchmark: str, scene: str, keys: list[str]) -> list[tuple[str, str, dict]]:
+    pub = PUBLISHED.get(benchmark)
+    if pub is None or scene not in pub["rows"]:
+        return []
+    return [
+        (
+            f"{m} (published)",
+            f"{PROTOCOLS[benchmark][0]}; source: {pub['source']}",
+            dict(zip(("miou", "mpa", "mp"), vals, strict=True)),
+        )
+        for m, vals in pub["rows"][scene].items()
+    ]
+
+
+def benchmark_page(
+    path: Path,
+    doc: dict,
+    scenes: dict[str, BenchmarkScene],
+    thumbs: dict[tuple[str, str], dict[str, tuple[str, np.ndarray]]],
+) -> None:
+    """Write the page and its images: the tables, and per scene, query and variant the first
+    frame's prediction (red) against the ground truth (green outline); every frame's figures
+    are in report.json."""
+    files = page_files_dir(path)
+    make_dir(files, "--html")
+    b = doc["benchmark"]
+    name, protocol = b["name"], b["protocol"]
+    keys = list(
+        dict.fromkeys(
+            [
+                *PROTOCOLS[name][1],
+                *next(iter(b["scenes"].values()))["variants"][next(iter(doc["variants"]))][
+                    "protocol"
+                ],
+                "mpa",
+                "mp",
+            ]
+        )
+    )
+    notes = doc["metric_notes"]
+    body = [
+        f"<p class='key'>benchmark {esc(name)} · {esc(doc['room'])} · goi {esc(doc['goi_version'])}"
+        f" · fixed threshold {fmt(doc['threshold'])}</p>",
+        f"<p class='key'>protocol: {esc(protocol)}. How goi's binary answer enters it: "
+        f"{esc(notes['how_goi_enters'])}. The goi rows: {esc(notes['goi'])}.</p>",
+        "<p class='key'>Figures: each query's first frame per variant, goi's prediction in red "
+        "on goi's rendering, the ground truth outlined in green.</p>",
+    ]
+    pub = PUBLISHED.get(name)
+    if pub is None:
+        body.append(
+            "<p class='key'>No published figures are shown: goi has no citable number for "
+            "this benchmark under this protocol (LangSplat, LangSplatV2 and Gaussian Grouping "
+            "report theirs under their own scripts; compare with their papers directly).</p>"
+        )
+    else:
+        body.append(
+            f"<p class='key'>Published figures: {esc(pub['source'])}; {esc(pub['note'])}."
+            " They were measured with other RES models, features and training.</p>"
+        )
+    mean = {v: {"protocol": r["protocol"], "goi": r["goi"]} for v, r in doc["variants"].items()}
+    body.append(f"<h2>Mean over {len(b['scenes'])} scene(s)</h2>")
+    body.append(_table(_rows(mean, protocol) + _published(name, "mean", keys), keys))
+    for scene, entry in b["scenes"].items():
+        body.append(
+            f"<h2>{esc(scene)}</h2><p class='key'>{entry['n_frames']} frames, "
+            f"{entry['n_queries']} queries"
+            + (
+                f"; skipped as the reference does: {esc('; '.join(entry['skipped'][:5]))}"
+                if entry["skipped"]
+                else ""
+            )
+            + "</p>"
+        )
+        body.append(
+            _table(_rows(entry["variants"], protocol) + _published(name, scene, keys), keys)
+        )
+        variants = list(entry["variants"])
+        body.append(
+            "<table><tr><th class='l'>query</th>"
+            + "".join(f"<th>{esc(v)} IoU (protocol)</th>" for v in variants)
+            + "</tr>"
+        )
+        for q in scenes[scene].queries:
+            cells = []
+            for v in variants:
+                ious = [d.get("iou") for d in entry["variants"][v]["queries"][q.id].values()]
+                ious = [x for x in ious if x is not None]
+                cells.append(f"<td>{fmt(float(np.mean(ious)) if ious else None)}</td>")
+            body.append(f"<tr><td class='l'>{esc(q.text)}</td>{''.join(cells)}</tr>")
+        body.append("</table>")
+        for q in scenes[scene].queries:
+            figs = []
+            for v in variants:
+                if q.id not in thumbs.get((scene, v), {}):
+                    continue
+                key, img = thumbs[(scene, v)][q.id]
+                png = f"{safe_name(scene)}_{safe_name(q.id)}_{safe_name(v)}.png"
+                write_png(files / png, img, force=True)
+                figs.append(
+                    f"<figure><img src='{rel(files / png, path)}' alt='{esc(v)}'>{esc(v)}: "
+                    f"{esc(q.text)}, frame {esc(key)}</figure>"
+                )
+            body.append("<div>" + "".join(figs) + "</div>")
+    body.append("<h2>Timings (s)</h2><table>")
+    for k, t in doc["timings_s"].items():
+        body.append(f"<tr><td class='l'>{esc(k)}</td><td>{fmt(float(t))}</td></tr>")
+    body.append("</table>")
+    write_page(path, f"goi eval --benchmark {name}", "".join(body))

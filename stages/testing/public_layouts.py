@@ -1,0 +1,174 @@
+"""Small synthetic scenes written in the exact layout of each public benchmark (the facts of
+../shared/notes/public-benchmarks.md), for the tests and `benchmarks/run.py --suite
+public-eval`: a trained 3DGS directory (INRIA point_cloud/iteration_*/point_cloud.ply), the
+benchmark's annotations of a few frames, features for the training views, RES masks and the
+text embeddings of the queries.
+
+The scene is a room with four boxes (`room_vertex`); the ground truth of a query is the pixels
+its box covers most (rendered from the Gaussians' object ids), so a good answer scores high.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from stages.render.rasterizer import Rasterizer
+from stages.scene.cameras import Camera
+from stages.scene.formats.colmap import write_colmap
+from stages.scene.formats.inria import write_inria
+from stages.scene.gaussians import load_ply, save_ply
+from stages.testing.synthetic import ring_cameras, room_vertex
+
+#: object id -> its query text (0 is the room's shell)
+NAMES = {0: "wall", 1: "red box", 2: "green box", 3: "blue box", 4: "tall box"}
+#: the annotated frames, as indices into the ring of cameras
+EVAL_VIEWS = (1, 4)
+#: how each benchmark names its cameras' images
+PREFIX = {
+    "lerf-ovs": "frame_",
+    "lerf-mask": "frame_",
+    "3d-ovs": "",
+    "goi-m360": "DSCF",
+    "replica-goi": "rgb_",
+}
+
+
+def _image_names(benchmark: str, n: int) -> list[str]:
+    if benchmark in ("lerf-ovs", "lerf-mask"):
+        return [f"frame_{i + 1:05d}" for i in range(n)]
+    if benchmark == "3d-ovs":
+        return [f"{i:02d}" for i in range(n)]
+    if benchmark == "goi-m360":
+        return [f"DSCF{4660 + i}" for i in range(n)]
+    return [f"rgb_{i}" for i in range(n)]
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), image)
+
+
+def synthetic_benchmark(
+    root: Path,
+    benchmark: str,
+    scene: str = "toy",
+    n: int = 4000,
+    n_views: int = 8,
+    size: tuple[int, int] = (64, 48),
+    dim: int = 16,
+    stride: int = 4,
+    seed: int = 0,
+) -> dict:
+    """Write root/{trained/<scene>, bench/..., features, res, text_embeddings.json}; returns
+    the paths and what the tests compare with."""
+    import cv2
+
+    trained = root / "trained" / scene
+    ply = trained / "point_cloud" / "iteration_7000" / "point_cloud.ply"
+    ply.parent.mkdir(parents=True)
+    v, ids = room_vertex(n, seed=seed, n_objects=4)
+    save_ply(ply, v, force=True)
+    names = _image_names(benchmark, n_views)
+    cams: list[Camera] = ring_cameras(n_views, *size, radius=1.9, height_m=1.5)
+    for c, name in zip(cams, names, strict=True):
+        c.name, c.image = name, name
+    bench = root / "bench"
+    sdir = bench / scene
+    if benchmark in ("lerf-ovs", "lerf-mask", "3d-ovs"):  # the dataset ships COLMAP + images
+        write_colmap(sdir / "sparse" / "0", cams, binary=True)
+    else:  # GOI's masks come without cameras: the trained directory has them
+        write_inria(trained / "cameras.json", cams)
+    rast = Rasterizer.from_gaussians(load_ply(ply))
+    onehot = np.eye(ids.max() + 1, dtype=np.float32)[ids]  # [G, K]
+    rng = np.random.default_rng(seed)
+    objects = rng.normal(size=(ids.max() + 1, dim))
+    objects /= np.linalg.norm(objects, axis=1, keepdims=True)
+    share = {c.name: rast.render_features(c, onehot).image for c in cams}  # [H, W, K]
+    label = {k: (s.argmax(2)) * (s.sum(2) > 0.5) + (s.sum(2) <= 0.5) * -1 for k, s in share.items()}
+    for c in cams:  # the datasets' photographs (3D-OVS indexes them; GOI's masks come alone)
+        if benchmark in ("lerf-ovs", "lerf-mask", "3d-ovs"):
+            rgb = (np.clip(rast.render_rgb(c).image, 0, 1) * 255).astype(np.uint8)
+            _write_png(sdir / "images" / f"{c.name}.png", rgb[:, :, ::-1])
+    eval_names = [cams[i].name for i in EVAL_VIEWS]
+    held_out = set(eval_names) if benchmark == "lerf-mask" else set()
+    queries = {1: NAMES[1], 2: NAMES[2], 3: NAMES[3]}
+    if benchmark == "3d-ovs":
+        queries = dict(NAMES)
+    qid = {k: (t.replace(" ", "_") if benchmark == "goi-m360" else t) for k, t in queries.items()}
+    # the annotations
+    if benchmark == "lerf-ovs":
+        d = bench / "label" / scene
+        d.mkdir(parents=True)
+        for i in EVAL_VIEWS:
+            c = cams[i]
+            objs = []
+            for k, text in queries.items():
+                m = (label[c.name] == k).astype(np.uint8)
+                contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+                if not contours:
+                    continue
+                poly = max(contours, key=cv2.contourArea).reshape(-1, 2)
+                if len(poly) < 3:
+                    continue
+                x1, y1 = poly.min(0)
+                x2, y2 = poly.max(0)
+                objs.append({"category": text, "bbox": [[int(x2), int(y2)], [int(x1), int(y1)]],
+                             "segmentation": poly.tolist()})  # fmt: skip
+            info = {"height": c.height, "width": c.width, "name": f"{c.name}.jpg"}
+            (d / f"{c.name}.json").write_text(json.dumps({"info": info, "objects": objs}))
+            _write_png(d / f"{c.name}.jpg", np.zeros((c.height, c.width, 3), np.uint8))
+    elif benchmark == "lerf-mask":
+        for c in cams:
+            if c.name not in held_out:
+                _write_png(sdir / "images_train" / f"{c.name}.png", np.zeros((4, 4), np.uint8))
+        for name in eval_names:
+            for k, text in queries.items():
+                m = (label[name] == k).astype(np.uint8) * 255
+                _write_png(sdir / "test_mask" / name / f"{text}.png", m)
+    elif benchmark == "3d-ovs":
+        seg = sdir / "segmentations"
+        seg.mkdir(parents=True)
+        (seg / "classes.txt").write_text("\n".join(queries.values()) + "\n")
+        for i in EVAL_VIEWS:
+            c = cams[i]
+            for k, text in queries.items():
+                _write_png(
+                    seg / f"{i:02d}" / f"{text}.png", (label[c.name] == k).astype(np.uint8) * 255
+                )
+    elif benchmark == "goi-m360":
+        for name in eval_names:
+            for k in queries:
+                m = (label[name] == k).astype(np.uint8) * 255
+                _write_png(sdir / qid[k] / "masks" / f"{name}.JPG.png", m)
+    elif benchmark == "replica-goi":
+        top = {}
+        for i, name in zip(EVAL_VIEWS, eval_names, strict=True):
+            sem = np.where(label[name] >= 0, label[name] * 10 + 3, 0).astype(np.uint8)
+            _write_png(sdir / "test" / "sem" / f"sem_{name.split('_')[1]}.png", sem)
+            top[f"sem_{i}.png"] = [{"class_name": t, "id": k * 10 + 3} for k, t in queries.items()]
+        (sdir / "test" / "top_list.json").write_text(json.dumps(top))
+    else:
+        raise ValueError(benchmark)
+    # features for the training views, RES masks on them, text embeddings
+    feats, res = root / "features", root / "res"
+    feats.mkdir()
+    for c in cams:
+        if c.name in held_out:
+            continue
+        f = share[c.name] @ objects + rng.normal(0, 0.3 / np.sqrt(dim), (c.height, c.width, dim))
+        small = cv2.resize(f.astype(np.float32), (c.width // stride, c.height // stride),
+                           interpolation=cv2.INTER_AREA)  # fmt: skip
+        np.save(feats / f"{c.name}.npy", small.transpose(2, 0, 1).astype(np.float16))
+        for k in queries:
+            m = (label[c.name] == k).astype(np.uint8) * 255
+            if m.any():
+                _write_png(res / qid[k] / f"{c.name}.png", m)
+    emb = root / "text_embeddings.json"
+    emb.write_text(json.dumps({t: objects[k].tolist() for k, t in queries.items()}))
+    return {"trained": trained, "bench": bench, "features": feats, "res": res,
+            "embeddings": emb, "scene": scene, "cameras": cams, "queries": qid}  # fmt: skip
