@@ -50,6 +50,7 @@ def _lifted_answer(scene, field: Path, prompt: str, kw: dict):  # noqa: ANN001, 
 
     src, lp = build(PromptSources, kw), build(LiftParams, kw)
     hp = build(HyperplaneParams, kw) if "loss" in kw else HyperplaneParams()
+    lp.check(hp)
     prompt = check_prompt(prompt)
     f = load_field_for(field, scene.ply_digest())
     text, _ = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
@@ -102,9 +103,13 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 
     scene = load_scene_from(kw)
     if kw["lift"]:
+        from stages.query.hyperplanes import check_plane_out
+        from stages.query.lifted_query import require_positive_evidence
+
         run = build(HyperplaneRun, kw)
-        refuse_inputs({"--out": run.out}, [field, *_source_paths(kw), *_scene_files(scene)])
+        check_plane_out(run.out, [field, *_source_paths(kw), *_scene_files(scene)])
         ans, _, lp = _lifted_answer(scene, field, prompt, kw)
+        require_positive_evidence(ans, kw.get("res_masks") or kw.get("bundle"))
         with staged_outputs():
             add_plane(run.out, ans.plane, field, {**ans.record(lp), "mode": "lifted"})
         n = int(ans.plane.positive.sum())
