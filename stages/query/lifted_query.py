@@ -34,8 +34,13 @@ def answer_prompt(
     hp: HyperplaneParams,
     lp: LiftParams,
     report: Report = SILENT,
+    need_positive: bool = False,
 ) -> LiftedAnswer:
+    """The lifted answer; with `need_positive` (a plane is to be stored from it) refused when
+    no lifted mask has a positive pixel."""
     ans = lift_prompt(renderer, scene.views("train"), source, prompt, text, hp, lp, report=report)
+    if need_positive:
+        require_positive_evidence(ans, source.source)
     rec = ans.record(lp)
     report.log(
         f"lifted {len(rec['views'])} views ({rec['chosen_by']}): {int(ans.selected.sum())} "

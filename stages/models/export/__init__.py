@@ -26,7 +26,7 @@ from typing import Annotated, Any
 
 from stages import __version__
 from stages.core.errors import GoiError
-from stages.core.files import make_dir
+from stages.core.files import check_output_name, make_dir
 from stages.core.params import FRACTION, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.models.bundle import MANIFEST, load_bundle
@@ -179,6 +179,13 @@ def _check_out(out: Path, sources: list[Source], force: bool) -> None:
         raise GoiError(f"--out: {out} is a file; a bundle is a directory")
     if out.is_symlink():
         raise GoiError(f"--out: {out} is a symbolic link; give the bundle directory itself")
+    check_output_name(out, "--out")
+    parent = out.parent if str(out.parent) else Path(".")
+    if parent.is_dir():  # the bundle is made beside --out: can it be? (not in /proc, say)
+        try:
+            tempfile.TemporaryDirectory(dir=parent, prefix=f".{out.name}.").cleanup()
+        except OSError as e:
+            raise GoiError(f"--out: {out}: cannot write in {parent} ({e.strerror or e})") from None
     if out.exists() and any(out.iterdir()) and not (out / MARKER).is_file():
         raise GoiError(
             f"--out: {out} is not a bundle goi export-model made (it has no {MARKER}); goi "
