@@ -102,7 +102,7 @@ def _held_lock(name: str, make_argv: Callable):
 
 # --- bundles -------------------------------------------------------------------------------
 
-DIM = 12
+DIM = 16  # the shared world's feature dimension: only the checked value can stop a case
 VOCAB = ["[UNK]", "red", "chair", "the", "green", "sofa", "box"]
 
 
