@@ -40,7 +40,7 @@ source_options = dataclass_options(PromptSources)
 lift_options = dataclass_options(LiftParams)
 
 
-def _lifted_answer(scene, field: Path, prompt: str, kw: dict):  # noqa: ANN001, ANN202
+def _lifted_answer(scene, field: Path, prompt: str, kw: dict, need_positive: bool = False):  # noqa: ANN001, ANN202
     """The lifted answer of a prompt for select / render-mask / fit-hyperplane --lift."""
     from stages.query.lifted_query import answer_prompt
     from stages.query.prompts import check_prompt, text_embedding
@@ -50,12 +50,14 @@ def _lifted_answer(scene, field: Path, prompt: str, kw: dict):  # noqa: ANN001, 
 
     src, lp = build(PromptSources, kw), build(LiftParams, kw)
     hp = build(HyperplaneParams, kw) if "loss" in kw else HyperplaneParams()
+    lp.check(hp)
     prompt = check_prompt(prompt)
     f = load_field_for(field, scene.ply_digest())
     text, _ = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
     masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer)
-    return answer_prompt(scene, renderer, prompt, text, masks, hp, lp, TERMINAL), renderer, lp
+    ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, TERMINAL, need_positive)
+    return ans, renderer, lp
 
 
 def _source_paths(kw: dict) -> list[Path | None]:
@@ -102,9 +104,11 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 
     scene = load_scene_from(kw)
     if kw["lift"]:
+        from stages.query.hyperplanes import check_plane_out
+
         run = build(HyperplaneRun, kw)
-        refuse_inputs({"--out": run.out}, [field, *_source_paths(kw), *_scene_files(scene)])
-        ans, _, lp = _lifted_answer(scene, field, prompt, kw)
+        check_plane_out(run.out, [field, *_source_paths(kw), *_scene_files(scene)])
+        ans, _, lp = _lifted_answer(scene, field, prompt, kw, need_positive=True)
         with staged_outputs():
             add_plane(run.out, ans.plane, field, {**ans.record(lp), "mode": "lifted"})
         n = int(ans.plane.positive.sum())

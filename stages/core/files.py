@@ -292,3 +292,109 @@ def refuse_inputs(outputs: Outputs, inputs: Iterable[str | os.PathLike[str] | No
                     raise GoiError(
                         f"{option}: {out} is one of this command's inputs; choose another path"
                     )
+
+
+# --- partial files and output locks --------------------------------------------------------
+#
+# A long command (extract, the blend cache) keeps its unfinished work in `<out>.partial`, which
+# the next run resumes. Such a file is only ever goi's own: a regular file (not a link, a FIFO,
+# a device, nor a second name of another file) of this user, opened only while the run holds
+# the output's lock, so two runs never write, resume or remove one partial file together.
+
+
+def partial_exists(path: Path, option: str) -> bool:
+    """Whether `path` holds a partial file to resume (checked: goi's kind of file), False when
+    nothing is there; anything else at the path is refused, never written through or removed."""
+    path = Path(path)
+    check_output_name(path, option)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return False
+    except OSError as e:
+        raise GoiError(f"{option}: cannot examine {path} ({e.strerror or e})") from None
+    what = "where goi keeps an unfinished run"
+    if stat.S_ISLNK(st.st_mode):
+        raise GoiError(
+            f"{option}: {path} ({what}) is a symbolic link; goi never writes through one: remove it"
+        )
+    if not stat.S_ISREG(st.st_mode):
+        raise GoiError(
+            f"{option}: {path} ({what}) is not a regular file (a FIFO, a device or a "
+            "directory?); move it away"
+        )
+    if st.st_nlink > 1:
+        raise GoiError(
+            f"{option}: {path} ({what}) is a hard link, a second name of another file that "
+            "goi would write over; remove it"
+        )
+    if st.st_uid != os.getuid():
+        raise GoiError(
+            f"{option}: {path} ({what}) belongs to another user (uid {st.st_uid}); remove it "
+            "or choose another path"
+        )
+    refuse_if_input(path, option)
+    return True
+
+
+def create_partial(path: Path, option: str) -> None:
+    """Create `path` as a new, empty partial file of this run (never through a link, never
+    over a file that appeared meanwhile)."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o666)
+    except FileExistsError:
+        path.unlink()  # an old partial of other inputs, checked by partial_exists
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o666)
+    except OSError as e:
+        raise GoiError(f"{option}: cannot create {path} ({e.strerror or e})") from None
+    os.close(fd)
+
+
+@contextlib.contextmanager
+def output_lock(path: str | os.PathLike[str], option: str) -> Iterator[None]:
+    """Hold `<path>.lock` while a command writes `path` (and its partial file): a second run
+    with the same output meets a clean refusal naming the first run's process id, before it
+    touches anything. The lock is the kernel's (flock): a run that dies releases it, and the
+    next run takes the file over."""
+    import fcntl
+
+    path = Path(path)
+    lock = path.with_name(path.name + ".lock")
+    check_output_name(lock, option)
+    parent = lock.parent if str(lock.parent) else Path(".")
+    if not parent.is_dir():
+        raise GoiError(f"{option}: {path}: directory {parent} does not exist")
+    refuse_if_input(lock, option)
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+        except OSError as e:
+            raise GoiError(f"{option}: cannot create the lock {lock} ({e.strerror or e})") from None
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:
+            os.close(fd)
+            raise GoiError(f"{option}: {lock} is not goi's lock file (a link, a FIFO?); remove it")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            other = os.read(fd, 64).decode("ascii", "replace").strip() or "?"
+            os.close(fd)
+            raise GoiError(
+                f"{option}: {path} is being written by another goi run (pid {other}); wait "
+                "for it to end, or choose another path"
+            ) from None
+        try:  # the holder removes the file as it lets go: then lock the new one instead
+            same = os.stat(lock, follow_symlinks=False).st_ino == st.st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock)  # before the lock is released: a waiter then sees a new file
+        os.close(fd)

@@ -46,3 +46,12 @@ class Silent:
 
 
 SILENT: Report = Silent()
+
+
+def size_text(nbytes: float) -> str:
+    """A size as a person reads it: GiB, MiB or KiB with three significant digits (a small
+    fit's sizes are not all 0.00 GiB)."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:.3g} {unit}"
+    return f"{int(nbytes)} bytes"

@@ -16,7 +16,7 @@ from typing import Annotated
 import numpy as np
 
 from stages.core.errors import GoiError
-from stages.core.files import make_dir
+from stages.core.files import check_output_name, make_dir
 from stages.core.params import AT_LEAST_1, check_params
 from stages.core.report import SILENT, Report
 from stages.evaluation.metrics import image_scores, mean_scores
@@ -55,6 +55,29 @@ class DemoRun:
     bundle: Path | None = None
     """Model bundle whose RES (docs/models.md) makes the RES masks on goi's rendering, instead
     of the demo scene's mask files; the page shows the masks the fits used."""
+    force: bool = False
+    """Write into an --out directory that holds files the demo did not make (they may be
+    replaced); a new, empty or earlier demo's directory needs no --force."""
+
+
+#: Marks a directory as the demo's own output, so that running the demo again may replace it.
+DEMO_MARKER = "goi-demo.txt"
+
+
+def _check_out(out: Path, force: bool) -> None:
+    """--out is the demo's: new, empty, or an earlier demo's (marked); a directory of the
+    user's files is refused without --force, before anything is written."""
+    check_output_name(out, "--out")
+    if out.exists() and not out.is_dir():
+        raise GoiError(f"--out: {out} is a file; the demo writes a directory")
+    if force or not out.is_dir() or (out / DEMO_MARKER).is_file():
+        return
+    theirs = sorted(p.name for p in out.iterdir())
+    if theirs:
+        raise GoiError(
+            f"--out: {out} holds files the demo did not make (e.g. {theirs[0][:60]}); the demo "
+            "would replace them: choose a new directory, or pass --force"
+        )
 
 
 @dataclass
@@ -74,9 +97,14 @@ class DemoResult:
 
 
 def _chosen_prompts(prompts: list[Prompt], wanted: str | None) -> list[Prompt]:
-    if not wanted:
+    if wanted is None:
         return prompts
     ids = [p.strip() for p in wanted.split(",") if p.strip()]
+    if not ids:
+        raise GoiError(
+            f"--prompts: {wanted!r} names no prompt; give ids separated by commas, e.g. "
+            f"{prompts[0].id}, or leave the option out for all of them"
+        )
     unknown = [w for w in ids if w not in {p.id for p in prompts}]
     if unknown:
         raise GoiError(
@@ -98,9 +126,11 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
         bundle.check_res()
         del bundle
     out = Path(run.out)
+    prompts = _chosen_prompts(load_prompts(scene_dir), p.prompts)  # before --out is made
+    _check_out(out, run.force)
     make_dir(out, "--out")
+    (out / DEMO_MARKER).write_text("written by goi demo; running the demo again replaces it\n")
     scene = load_scene(scene_dir)
-    prompts = _chosen_prompts(load_prompts(scene_dir), p.prompts)
     report.log(f"demo: {scene.gaussians.count} Gaussians, {len(scene.train)} training views")
     feats = import_features(
         scene,

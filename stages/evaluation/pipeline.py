@@ -411,6 +411,11 @@ def run_eval(
             f"({room.embeddings_path}) {text_dim}; image and text features must share one space"
         )
     _check_entries(p, files)
+    n_train = len(room.scene.views("train"))
+    if p.res_views is not None and p.res_views > n_train:
+        raise GoiError(
+            f"--res-views: {p.res_views} is more than the room's {n_train} training views"
+        )
     work = Path(run.work or Path(run.out).with_suffix(".work"))
     scene = room.scene
     inputs = [

@@ -135,6 +135,16 @@ def load_room(room: Path, text_embeddings: Path | None = None) -> Room:
         raise GoiError(
             f"{ids_path}: {gaussian_ids.shape} ids for {scene.gaussians.count} Gaussians"
         )
+    if gaussian_ids is not None:  # a 3D score needs targets that are the room's instances
+        known = set(np.unique(gaussian_ids).tolist())
+        for p in prompts:
+            unknown = [t for t in p.targets if t not in known]
+            if not p.targets or unknown:
+                what = f"target(s) {unknown[:5]}" if unknown else "no target"
+                raise GoiError(
+                    f"{room / 'prompts.json'}: prompt {p.id!r} names {what} that is not an "
+                    f"instance id of {ids_path} (its 3D score would mean nothing)"
+                )
     for p in prompts:  # every ground-truth mask is there and readable before any work
         for v in p.test_views:
             path = room / "eval" / "masks" / p.id / f"{v}.png"

@@ -20,13 +20,20 @@ from typing import Any
 import numpy as np
 
 from schemas import validate_json
-from stages.core.arrays import normalise
 from stages.core.artifacts import sha256_files
 from stages.core.errors import GoiError
 from stages.core.files import read_json
 from stages.models import res_processing as rp
 from stages.models.grounded import GroundedSam, Grounding, check_spec
-from stages.models.onnx_io import Tokens, check_inputs_named, check_io, inside, session
+from stages.models.manifest import check_values
+from stages.models.onnx_io import (
+    Tokens,
+    check_inputs_named,
+    check_io,
+    checked_embedding,
+    inside,
+    session,
+)
 
 MANIFEST = "manifest.json"
 #: How an image is resized to a model's `size`: OpenCV's area filter (schema 1.0's only way),
@@ -193,7 +200,7 @@ class Bundle:
         if spec.get("attention_mask"):
             feed[spec["attention_mask"]] = att
         out = sess.run([spec["output"]], feed)[0][0].astype(np.float32)
-        return normalise(out)
+        return checked_embedding(out, f"{self.root / spec['file']}: output '{spec['output']}'")
 
 
 def _check_image_spec(mf: Path, key: str, spec: dict) -> None:
@@ -218,6 +225,7 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
         raise GoiError(f"--bundle: {root} has no {MANIFEST}")
     manifest = read_json(mf)
     validate_json(manifest, "goi.bundle", str(mf))
+    check_values(manifest, str(mf))  # every value typed, finite, in range: before any model
     encoders = [k for k in ("image_encoder", "text_encoder") if k in manifest]
     if not encoders and "res" not in manifest and "grounded" not in manifest:
         raise GoiError(

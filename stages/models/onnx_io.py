@@ -33,24 +33,60 @@ def inside(root: Path, rel: str, where: str) -> Path:
     return p
 
 
-def session(path: Path, low_memory: bool = False) -> Any:
+def session(path: Path, low_memory: bool = False) -> Session:
     """An onnxruntime session. `low_memory` turns off the CPU memory arena and the
     memory-pattern planner: the large RES graphs (SAM's ViT encoder, Grounding DINO) otherwise
     keep several GB of peak activations reserved (SAM ViT-B's encoder passed 7 GB with them, 4 GB
     without), at a cost of a few percent in speed."""
     import onnxruntime as ort
 
+    # onnxruntime logs a failing kernel on stderr itself: goi's one line says it instead
+    ort.set_default_logger_severity(4)
     opts = ort.SessionOptions()
-    opts.log_severity_level = 3
+    opts.log_severity_level = 4
     if low_memory:
         opts.enable_cpu_mem_arena = False
         opts.enable_mem_pattern = False
     try:
-        return ort.InferenceSession(str(path), sess_options=opts, providers=providers())
+        inner = ort.InferenceSession(str(path), sess_options=opts, providers=providers())
     except Exception as e:  # onnxruntime raises its own exception types for bad models
         raise GoiError(
             f"{path}: not a loadable ONNX model ({str(e).splitlines()[0][:200]})"
         ) from None
+    return Session(inner, path)
+
+
+class Session:
+    """An onnxruntime session whose every run is checked: a model that fails while it runs
+    (a shape its graph cannot take, a kernel error) is a GoiError naming the file, the
+    outputs asked for and the tensors fed, never onnxruntime's own exception or log line."""
+
+    def __init__(self, inner: Any, path: Path):
+        self.inner = inner
+        self.path = path
+
+    def get_inputs(self) -> Any:
+        return self.inner.get_inputs()
+
+    def get_outputs(self) -> Any:
+        return self.inner.get_outputs()
+
+    def run(self, outputs: list[str], feed: dict[str, np.ndarray]) -> list[np.ndarray]:
+        import onnxruntime as ort
+
+        opts = ort.RunOptions()
+        opts.log_severity_level = 4
+        try:
+            return list(self.inner.run(outputs, feed, opts))
+        except Exception as e:  # onnxruntime's own exception types
+            fed = ", ".join(
+                f"'{k}' {list(np.shape(v))} {np.asarray(v).dtype}" for k, v in feed.items()
+            )
+            first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            raise GoiError(
+                f"{self.path}: the model failed while computing "
+                f"{', '.join(repr(o) for o in outputs)} from {fed} ({first[:240]})"
+            ) from None
 
 
 def check_io(
@@ -109,3 +145,16 @@ class Tokens:
             )
         ids = np.asarray([enc.ids], np.int64)
         return ids, np.asarray([enc.attention_mask], np.int64)
+
+
+def checked_embedding(v: np.ndarray, where: str) -> np.ndarray:
+    """A text encoder's output [D] as a unit vector; a NaN, infinite or zero embedding (a
+    broken model) is refused, as a zero vector in --text-embeddings is."""
+    from stages.core.arrays import normalise
+
+    if v.ndim != 1 or not np.isfinite(v).all():
+        raise GoiError(f"{where}: the text encoder returned NaN or infinite values")
+    top = float(np.abs(v).max(initial=0.0))
+    if not top > 0:
+        raise GoiError(f"{where}: the text encoder returned a zero embedding (no direction)")
+    return normalise(v / top)  # scaled first: a tiny vector keeps its direction exactly

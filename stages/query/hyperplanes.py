@@ -200,13 +200,20 @@ def load_plane(
     return plane
 
 
+def check_plane_out(out: Path, inputs: list[Path | None]) -> dict[str, Hyperplane]:
+    """Preflight of the hyperplanes artifact a plane is added to: never an input, a file goi
+    can write, and (when it exists) a readable hyperplanes artifact; returns its planes."""
+    out = Path(out)
+    refuse_inputs({"--out": out}, inputs)
+    check_writable(out, True, "--out")  # the prompt is added to an existing artifact
+    return read_hyperplanes(out) if out.exists() else {}
+
+
 def add_plane(out: Path, plane: Hyperplane, field_path: Path, record: dict) -> Path:
     """Store a plane fitted elsewhere (goi fit-hyperplane --lift: on lifted evidence) in the
     artifact, replacing the prompt's plane; `record` (views, parameters) goes with it."""
     out = Path(out)
-    refuse_inputs({"--out": out}, [field_path])
-    check_writable(out, force=True)
-    existing = read_hyperplanes(out) if out.exists() else {}
+    existing = check_plane_out(out, [field_path])
     field_sha = field_key(field_path)
     info = {
         "text_source": "lifted",

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from stages.core.artifacts import input_digest, write_png
+from stages.core.errors import GoiError
 from stages.core.files import make_dir
 from stages.core.report import SILENT, Report
 from stages.query.lifted import LiftedAnswer, MaskSource, lift_prompt, lifted_masks
@@ -33,8 +34,13 @@ def answer_prompt(
     hp: HyperplaneParams,
     lp: LiftParams,
     report: Report = SILENT,
+    need_positive: bool = False,
 ) -> LiftedAnswer:
+    """The lifted answer; with `need_positive` (a plane is to be stored from it) refused when
+    no lifted mask has a positive pixel."""
     ans = lift_prompt(renderer, scene.views("train"), source, prompt, text, hp, lp, report=report)
+    if need_positive:
+        require_positive_evidence(ans, source.source)
     rec = ans.record(lp)
     report.log(
         f"lifted {len(rec['views'])} views ({rec['chosen_by']}): {int(ans.selected.sum())} "
@@ -42,6 +48,18 @@ def answer_prompt(
         f"{rec['n_selected_by_semantics']} by the field"
     )
     return ans
+
+
+def require_positive_evidence(ans: LiftedAnswer, source: object) -> None:
+    """A plane is stored only from evidence with a positive pixel: lifted masks that are all
+    empty say where the prompt is not, never where it is, so a plane fitted on them alone
+    would be the text's guess presented as a fit."""
+    if not any(not e.empty for e in ans.evidence):
+        raise GoiError(
+            f"{source}: the RES masks of the {len(ans.evidence)} lifted views "
+            f"({', '.join(ans.views[:4])}{', ...' if len(ans.views) > 4 else ''}) are all "
+            "empty: no pixel shows the prompt, so there is no plane to fit"
+        )
 
 
 def write_masks(

@@ -42,12 +42,16 @@ import numpy as np
 
 from stages.core.errors import GoiError
 from stages.core.params import FRACTION, NON_NEGATIVE, Range
-from stages.query.osh import Counts
+from stages.query.osh import Counts, HyperplaneParams
 
 #: Pixels' worth of agreement every view starts with in its confidence (see the module doc).
 CONFIDENCE_PRIOR = 10.0
 #: Views the RES model runs on when it has to run (a model costs seconds per view on a CPU).
 DEFAULT_MODEL_VIEWS = 8
+
+
+#: --confidence-rounds at most: the weights settle within a few rounds (the loop stops there).
+MAX_ROUNDS = 100
 
 
 @dataclass
@@ -66,19 +70,34 @@ class LiftParams:
     (in pixels' worth) takes the semantic decision (its codebook entry / the OSH) instead."""
     background_bias: Annotated[float, Range(gt=-1.0, lt=1.0)] = 0.0
     """With --lift: a Gaussian is in when S1 - S0 > bias (S1 + S0); > 0 favours background."""
-    confidence_rounds: Annotated[int, NON_NEGATIVE] = 1
-    """With --lift: rounds of per-view confidence re-weighting (0: a plain vote)."""
+    confidence_rounds: Annotated[int, Range(ge=0, le=MAX_ROUNDS)] = 1
+    """With --lift: rounds of per-view confidence re-weighting (0: a plain vote); the rounds
+    stop early once the views' weights settle."""
     core_share: Annotated[float, FRACTION] = 0.75
     """With --lift: share of S1 that puts a Gaussian in the core the views are scored against."""
 
     def config(self) -> dict:
         return asdict(self)
 
-    def check(self) -> None:
-        """The lifted-mode options mean nothing without --lift: refuse them rather than
-        ignore them."""
-        if not self.lift and self.res_views is not None:
-            raise GoiError("--res-views: only with --lift (it picks the views to lift)")
+    def check(self, hp: HyperplaneParams | None = None) -> None:
+        """Options that mean nothing in the mode chosen are refused, never ignored: the
+        lifted-mode options without --lift, and with --lift the one-view fit's choice of views
+        (`hp`'s --fit-on and --fit-views; the lifted mode picks its own, see --res-views)."""
+        if not self.lift:
+            defaults = LiftParams()
+            for name in ("res_views", "min_evidence", "background_bias", "confidence_rounds",
+                         "core_share"):  # fmt: skip
+                if getattr(self, name) != getattr(defaults, name):
+                    option = "--" + name.replace("_", "-")
+                    raise GoiError(f"{option}: only with --lift (an option of the lifted mode)")
+            return
+        if hp is not None and hp.fit_on is not None:
+            raise GoiError(
+                f"--fit-on: not with --lift, which lifts the RES masks of many views (choose "
+                f"how many with --res-views), not of the view(s) {hp.fit_on[:60]!r}"
+            )
+        if hp is not None and hp.fit_views != HyperplaneParams().fit_views:
+            raise GoiError("--fit-views: not with --lift (choose how many with --res-views)")
 
 
 @dataclass
@@ -192,7 +211,10 @@ def fuse(
             break
         E = S1 + S0
         core = (E >= p.min_evidence) & (S1 >= p.core_share * E)
+        settled = conf
         conf = np.array([view_confidence(e, core) for e in evidence])
+        if np.array_equal(conf, settled):
+            break  # further rounds would repeat this one exactly
     sel, evident = decide(S1, S0, entry, seen, plane_positive, p)
     confidence = {e.view: round(float(c), 4) for e, c in zip(evidence, conf, strict=True)}
     return Lifted(sel, evident, S1, S0, confidence)

@@ -136,7 +136,7 @@ def run_query(
     lp = lp or LiftParams()
     for params in (hp, qp, run, lp):
         check_params(params)
-    lp.check()
+    lp.check(hp)
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
     text, text_source = text_embedding(

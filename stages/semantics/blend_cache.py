@@ -23,8 +23,8 @@ import numpy as np
 
 from stages.core.artifacts import check_writable, open_h5, put, stamp, write_h5
 from stages.core.errors import GoiError
-from stages.core.files import regular_file
-from stages.core.report import SILENT, Report
+from stages.core.files import create_partial, partial_exists, regular_file
+from stages.core.report import SILENT, Report, size_text
 from stages.core.staging import kept_on_interrupt
 from stages.render.composite import blend_weights, pooled_blend_weights
 from stages.render.rasterizer import Rasterizer
@@ -232,7 +232,8 @@ def cache_target(
         check_writable(p, force, "--cache")
         return False
     regular_file(p, "blend cache file (--cache)")
-    if _matches(p, scene.ply_digest(), scene.cameras_digest(), k, cache_sizes(cameras, sizes)):
+    want = cache_sizes(cameras, sizes)
+    if _matches(p, scene.ply_digest(), scene.cameras_digest(), k, want, scene.gaussians.count):
         return True
     if not force:
         raise GoiError(
@@ -272,19 +273,20 @@ def build_cache_file(
     then rename it to `path`. A cut-off build resumes there: the views it finished are kept."""
     identity = cache_identity(scene, k, want)
     partial = path.with_name(path.name + ".partial")
-    mode = "w"
-    if partial.is_file():
-        try:
-            with h5py.File(partial, "r") as f:
-                same = all(f.attrs.get(key) == value for key, value in identity.items())
-        except OSError:
-            same = False
-        mode = "r+" if same else "w"
     t = time.perf_counter()
     rast = Rasterizer.from_gaussians(scene.gaussians)
     order = morton_order(rast.means)
     position = np.empty_like(order)
     position[order] = np.arange(len(order), dtype=np.int32)
+    mode = "w"
+    if partial_exists(partial, "--cache"):
+        problem = _partial_problem(partial, identity, order, want)
+        if problem is None:
+            mode = "r+"
+        else:
+            report.log(f"{partial}: {problem}; building the cache again")
+    if mode == "w":
+        create_partial(partial, "--cache")
     inputs = {"ply": scene.ply_digest(), "cameras": scene.cameras_digest()}
     with kept_on_interrupt(partial, created=mode == "w"):
         with h5py.File(partial, mode, track_order=True) as f:
@@ -308,8 +310,41 @@ def build_cache_file(
     os.replace(partial, path)
     report.log(
         f"blend cache built in {time.perf_counter() - t:.1f} s ({len(cameras)} views, "
-        f"{path.stat().st_size / 2**30:.2f} GiB at {path})"
+        f"{size_text(path.stat().st_size)} at {path})"
     )
+
+
+def _partial_problem(
+    partial: Path,
+    identity: dict[str, str | int],
+    order: np.ndarray,
+    want: dict[str, tuple[int, int]],
+) -> str | None:
+    """Why a cut-off build in `partial` is not this cache's (None when it is): its recorded
+    identity is not believed alone; the Gaussian count, the column order, and each finished
+    view's grid and weights are checked against the real inputs."""
+    try:
+        with h5py.File(partial, "r") as f:
+            a = f.attrs
+            if not all(a.get(key) == value for key, value in identity.items()):
+                return "made from other inputs or options"
+            if int(a.get("n_gaussians", -1)) != len(order) or not np.array_equal(
+                f["order"][()], order
+            ):
+                return f"not made for these {len(order)} Gaussians"
+            for name, grp in f["views"].items():
+                if name not in want:
+                    return f"holds view '{name}', which is not one of the training views"
+                if "weights" not in grp:
+                    continue  # cut off while being written: redone
+                vw = read_view(grp, len(order), f"{partial}: view '{name}'")
+                if (vw.width, vw.height) != want[name]:
+                    return f"view '{name}' has a {vw.width}x{vw.height} grid, not {want[name]}"
+    except GoiError as e:
+        return str(e)
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+        return f"not a readable cache ({str(e)[:120]})"
+    return None
 
 
 def _write_view(views: h5py.Group, name: str, vw: ViewWeights) -> None:
@@ -353,7 +388,9 @@ def cache_nbytes(path: str | os.PathLike[str], views: list[str]) -> dict[str, in
 _ARRAYS = ("indptr", "indices", "weights")
 
 
-def _matches(p: Path, ply_sha: str, cam_sha: str, k: int, want: dict[str, tuple[int, int]]) -> bool:
+def _matches(
+    p: Path, ply_sha: str, cam_sha: str, k: int, want: dict[str, tuple[int, int]], n: int
+) -> bool:
     try:
         with h5py.File(p, "r") as f:
             a, views = f.attrs, f.get("views", {})
@@ -362,6 +399,7 @@ def _matches(p: Path, ply_sha: str, cam_sha: str, k: int, want: dict[str, tuple[
                 and a.get("ply_sha256") == ply_sha
                 and a.get("cameras_sha256") == cam_sha
                 and int(a.get("top_k", -1)) == k
+                and int(a.get("n_gaussians", -1)) == n
                 and all(
                     v in views
                     and (int(views[v].attrs["width"]), int(views[v].attrs["height"])) == wh

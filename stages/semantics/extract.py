@@ -18,7 +18,13 @@ import numpy as np
 
 from stages.core.artifacts import check_writable, put, sha256_files, stamp
 from stages.core.errors import GoiError
-from stages.core.files import check_output_name, refuse_if_input, refuse_inputs
+from stages.core.files import (
+    check_output_name,
+    create_partial,
+    output_lock,
+    partial_exists,
+    refuse_inputs,
+)
 from stages.core.params import AT_LEAST_1, Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.core.staging import kept_on_interrupt
@@ -60,24 +66,35 @@ def _write_views(
 ) -> Path:
     out = run.out
     check_writable(out, run.force, "--out")
-    partial = _partial(out)
-    check_output_name(partial, "--out")
-    if (partial.exists() or partial.is_symlink()) and not partial.is_file():
-        raise GoiError(
-            f"--out: {partial} (where extract keeps an unfinished run) is not a regular file; "
-            "move it away"
-        )
-    refuse_if_input(partial, "--out")
-    mode = "w"
-    if partial.is_file():
-        try:
-            with h5py.File(partial, "r") as f:
-                same = json.loads(f.attrs.get("inputs", "{}")) == inputs
-        except OSError:
-            same = False
-        mode = "r+" if same else "w"
-        if same:
-            report.log(f"resuming {partial}")
+    check_output_name(_partial(out), "--out")
+    with output_lock(out, "--out"):  # one run per output, or its partial file is shared
+        partial = _partial(out)
+        mode = "w"
+        if partial_exists(partial, "--out"):
+            try:
+                with h5py.File(partial, "r") as f:
+                    same = json.loads(f.attrs.get("inputs", "{}")) == inputs
+            except (OSError, ValueError, TypeError):
+                same = False
+            mode = "r+" if same else "w"
+            if same:
+                report.log(f"resuming {partial}")
+        if mode == "w":
+            create_partial(partial, "--out")
+        return _write_partial(partial, mode, out, scene, names, source, inputs, make, report)
+
+
+def _write_partial(
+    partial: Path,
+    mode: str,
+    out: Path,
+    scene: Scene,
+    names: list[str],
+    source: str,
+    inputs: dict[str, str],
+    make: Callable[[str], np.ndarray],
+    report: Report,
+) -> Path:
     # On a failure nothing of this run is worth keeping, so a partial file it created goes.
     # An interruption (Ctrl-C, a crash) keeps it, so that the next run resumes it.
     with kept_on_interrupt(partial, created=mode == "w"):

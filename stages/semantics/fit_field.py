@@ -20,9 +20,9 @@ import torch
 from stages.core.arrays import unit_norms
 from stages.core.artifacts import check_writable, input_digest
 from stages.core.errors import GoiError
-from stages.core.files import check_output_name, refuse_if_input, refuse_inputs
+from stages.core.files import check_output_name, output_lock, refuse_if_input, refuse_inputs
 from stages.core.params import NON_NEGATIVE, check_params
-from stages.core.report import SILENT, Report
+from stages.core.report import SILENT, Report, size_text
 from stages.render.constants import ALPHA_MIN
 from stages.scene.scene import Scene
 from stages.semantics.blend_cache import build_cache_file, cache_nbytes, cache_sizes, cache_target
@@ -32,7 +32,7 @@ from stages.semantics.feature_renderer import FeatureRenderer, GradBuffers
 from stages.semantics.features import feature_grid, feature_views, load_features
 from stages.semantics.field import save_field
 from stages.semantics.field_model import FieldModel, FieldParams, field_losses
-from stages.semantics.memory import memory_budget, working_set
+from stages.semantics.memory import cache_floor, memory_budget, working_set
 
 
 @dataclass
@@ -103,6 +103,21 @@ def fit_field(
     refuse_inputs(outputs, [scene.ply_path, *scene.camera_files, features_path, codebook_path])
     if cache_path.resolve() == run.out.resolve():
         raise GoiError(f"--cache: {cache_path} is also --out; give them different paths")
+    # one run per output: a second run of the same --out (or --cache) is refused here, before
+    # it reads, builds or removes anything of the first run's
+    with output_lock(run.out, "--out"), output_lock(cache_path, "--cache"):
+        return _fit(scene, features_path, codebook_path, p, run, cache_path, report)
+
+
+def _fit(
+    scene: Scene,
+    features_path: Path,
+    codebook_path: Path,
+    p: FieldParams,
+    run: FieldRun,
+    cache_path: Path,
+    report: Report,
+) -> Path:
     g = scene.gaussians
     renderable = g.valid if g.valid.size else np.ones(g.count, bool)
     if not (g.opacities[renderable] >= ALPHA_MIN).any():
@@ -131,12 +146,13 @@ def fit_field(
         check_checkpoint(run.checkpoint, inputs, p.config(), shapes)
     budget = memory_budget(run.max_memory_gib)
     need = working_set(g.count, scene, train, sizes, dim, codebook.shape[0], p)
-    if need > budget:
+    floor = cache_floor(cache_sizes(train, sizes), p.views_per_step)
+    if need + floor > budget:
         raise GoiError(
-            f"--max-memory-gib: the fit needs at least {need / 2**30:.2f} GiB beside the blend "
-            f"cache (features, Gaussians, optimiser state, one view's rasterisation), more than "
-            f"the {budget / 2**30:.2f} GiB allowed; raise it, or use fewer views or a smaller "
-            "feature grid"
+            f"--max-memory-gib: the fit needs at least {size_text(need + floor)} (features, "
+            f"Gaussians, optimiser state, one view's rasterisation, a step's share of the blend "
+            f"cache), more than the {size_text(budget)} allowed; raise it, or use fewer views "
+            "or a smaller feature grid"
         )
     reuse_cache = cache_target(cache_path, scene, train, p.top_k, sizes, run.force)
 
@@ -149,14 +165,15 @@ def fit_field(
         step_need = need + sum(sorted(per_view.values())[-p.views_per_step :])
         if step_need > budget:
             raise GoiError(
-                f"--max-memory-gib: even streaming the blend cache needs "
-                f"{step_need / 2**30:.2f} GiB (the largest {p.views_per_step} views' weights "
-                f"beside the rest), more than the {budget / 2**30:.2f} GiB allowed"
+                f"--max-memory-gib: even streaming the blend cache needs {size_text(step_need)} "
+                f"(the largest {p.views_per_step} views' weights beside the rest), more than "
+                f"the {size_text(budget)} allowed (the cache {cache_path} is built and kept "
+                "for the next run)"
             )
         report.log(
             f"streaming the blend cache from {cache_path}: its "
-            f"{sum(per_view.values()) / 2**30:.2f} GiB do not fit in "
-            f"{budget / 2**30:.2f} GiB beside the rest ({need / 2**30:.2f} GiB)"
+            f"{size_text(sum(per_view.values()))} do not fit in "
+            f"{size_text(budget)} beside the rest ({size_text(need)})"
         )
         order = None  # read (and checked) with the first view, then reused
         for v in report.progress(views, "check cache", length=len(views)):

@@ -70,3 +70,10 @@ def working_set(
     batch = per_step * (entries * 4 * 4 + dim * (2 + 4 + 4))
     raster = max(c.width * c.height for c in cameras) * _ENTRIES_PER_PIXEL * _ENTRY_BYTES
     return features + gaussians + optimiser + batch + raster
+
+
+def cache_floor(sizes: dict[str, tuple[int, int]], views_per_step: int) -> int:
+    """The least a streamed step holds of the blend cache, known before it is built: the row
+    pointers [cells + 1] int64 of its largest views (their weights come on top)."""
+    cells = sorted((w * h + 1) * 8 for w, h in sizes.values())
+    return sum(cells[-views_per_step:])

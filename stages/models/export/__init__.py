@@ -24,8 +24,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
+from stages import __version__
 from stages.core.errors import GoiError
-from stages.core.files import make_dir
+from stages.core.files import check_output_name, make_dir
 from stages.core.params import FRACTION, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.models.bundle import MANIFEST, load_bundle
@@ -75,6 +76,11 @@ class ModelExportParams:
     """CLIPSeg: a pixel is in the mask when its probability exceeds this."""
     opset: Annotated[int, Range(ge=14, le=23)] = 17
     """ONNX opset version."""
+
+
+#: The file that marks a directory as a bundle goi made: --force replaces only such a one (a
+#: manifest.json alone could be anybody's).
+MARKER = ".goi-export-model"
 
 
 @dataclass
@@ -171,8 +177,20 @@ def _check_out(out: Path, sources: list[Source], force: bool) -> None:
         raise GoiError(f"--out: {out} already exists; pass --force to replace the bundle")
     if out.exists() and not out.is_dir():
         raise GoiError(f"--out: {out} is a file; a bundle is a directory")
-    if out.exists() and not (out / MANIFEST).is_file() and any(out.iterdir()):
-        raise GoiError(f"--out: {out} is not a model bundle; goi replaces only a bundle")
+    if out.is_symlink():
+        raise GoiError(f"--out: {out} is a symbolic link; give the bundle directory itself")
+    check_output_name(out, "--out")
+    parent = out.parent if str(out.parent) else Path(".")
+    if parent.is_dir():  # the bundle is made beside --out: can it be? (not in /proc, say)
+        try:
+            tempfile.TemporaryDirectory(dir=parent, prefix=f".{out.name}.").cleanup()
+        except OSError as e:
+            raise GoiError(f"--out: {out}: cannot write in {parent} ({e.strerror or e})") from None
+    if out.exists() and any(out.iterdir()) and not (out / MARKER).is_file():
+        raise GoiError(
+            f"--out: {out} is not a bundle goi export-model made (it has no {MARKER}); goi "
+            "replaces only its own bundles: remove it yourself, or choose another directory"
+        )
 
 
 def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report: Report) -> dict:
@@ -255,6 +273,7 @@ def export_model(
         name = "+".join(s.path.resolve().name for s in checked)
         manifest = {"schema": "goi.bundle", "schema_version": "1.1", "name": name, **parts}
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
+        (tmp / MARKER).write_text(f"written by goi export-model (goi {__version__})\n")
         bundle = load_bundle(tmp)  # what we wrote must pass our own reader
         if bundle.has_res:
             bundle.check_res()

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from stages.core.errors import GoiError, warn
-from stages.core.files import read_json
+from stages.core.files import read_json, regular_file
 
 TOLERANCE = 1e-4
 #: The absolute floor of the check (what goi's CLIP export always allowed).
@@ -43,14 +43,88 @@ def checkpoint_json(path: Path) -> Any:
 
 
 def has_weights(src: Path) -> None:
-    """The checkpoint holds safetensors weights (goi never unpickles a .bin)."""
-    if not any((src / n).is_file() for n in ("model.safetensors", "model.safetensors.index.json")):
+    """The checkpoint holds safetensors weights, and only those are ever read: goi never hands
+    a pickle (a .bin) to torch. `model.safetensors` has a sound header, or
+    `model.safetensors.index.json` names only .safetensors shards of this directory, each with a
+    sound header; anything else is refused before transformers opens a file."""
+    single, index = src / "model.safetensors", src / "model.safetensors.index.json"
+    if single.exists() or single.is_symlink():
+        check_safetensors(single)
+    elif index.exists() or index.is_symlink():
+        for shard in _shards(index):
+            check_safetensors(src / shard)
+    else:
         bins = (
             "; it has pytorch_model.bin, which goi does not load"
             if (src / "pytorch_model.bin").is_file()
             else ""
         )
         raise GoiError(f"{src}: no model.safetensors{bins} (goi reads safetensors weights only)")
+
+
+def _shards(index: Path) -> list[str]:
+    doc = read_json(index)
+    weights = doc.get("weight_map") if isinstance(doc, dict) else None
+    if not isinstance(weights, dict) or not weights:
+        raise GoiError(f"{index}: needs a non-empty 'weight_map' of tensor names to shard files")
+    shards = sorted({str(v) for v in weights.values()})
+    for name in shards:
+        if not name.endswith(".safetensors"):
+            raise GoiError(
+                f"{index}: names the shard {name[:80]!r}, which is not a .safetensors file; "
+                "goi reads safetensors weights only (never a pickled .bin)"
+            )
+        if Path(name).name != name or name.startswith("."):
+            raise GoiError(f"{index}: the shard {name[:80]!r} is not a file of this directory")
+    return shards
+
+
+#: Bytes per element of the safetensors dtypes.
+_DTYPE_BYTES = {
+    "BOOL": 1, "U8": 1, "I8": 1, "F8_E4M3": 1, "F8_E5M2": 1, "I16": 2, "U16": 2, "F16": 2,
+    "BF16": 2, "I32": 4, "U32": 4, "F32": 4, "I64": 8, "U64": 8, "F64": 8,
+}  # fmt: skip
+
+
+def check_safetensors(path: Path) -> None:
+    """A safetensors file whose header is sound: an 8-byte length, that many bytes of a JSON
+    object, and each tensor's dtype, shape and byte range inside the file and consistent."""
+    import json
+
+    p = regular_file(path, "safetensors weights file")
+    size = p.stat().st_size
+    try:
+        with open(p, "rb") as f:
+            head = f.read(8)
+            n = int.from_bytes(head, "little") if len(head) == 8 else -1
+            if not 2 <= n <= min(size - 8, 100 << 20):
+                raise GoiError(f"{p}: not a safetensors file (its header length is broken)")
+            header = json.loads(f.read(n).decode("utf-8"))
+    except OSError as e:
+        raise GoiError(f"{p}: cannot read the weights ({e.strerror or e})") from None
+    except (UnicodeDecodeError, ValueError):
+        raise GoiError(f"{p}: not a safetensors file (its header is not JSON)") from None
+    if not isinstance(header, dict):
+        raise GoiError(f"{p}: not a safetensors file (its header is not a JSON object)")
+    data = size - 8 - n
+    for name, t in header.items():
+        if name == "__metadata__":
+            continue
+        ok = isinstance(t, dict) and t.get("dtype") in _DTYPE_BYTES
+        shape = t.get("shape") if ok else None
+        offsets = t.get("data_offsets") if ok else None
+        ok = ok and isinstance(shape, list) and all(_count(d) for d in shape)
+        ok = ok and isinstance(offsets, list) and len(offsets) == 2 and all(map(_count, offsets))
+        if ok and isinstance(shape, list) and isinstance(offsets, list):
+            elements = int(np.prod(shape, dtype=object)) if shape else 1
+            a, b = offsets
+            ok = a <= b <= data and b - a == elements * _DTYPE_BYTES[t["dtype"]]
+        if not ok:
+            raise GoiError(f"{p}: tensor {str(name)[:80]!r} has a broken header entry")
+
+
+def _count(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
 def load_model(cls: Any, src: Path, what: str) -> Any:
