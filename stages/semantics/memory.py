@@ -58,15 +58,56 @@ def working_set(
     p: FieldParams,
 ) -> int:
     """Bytes a fit holds besides the blend cache's weights."""
-    cells = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
-    features = sum(w * h for w, h in cells.values()) * dim * 2  # float16
-    gaussians = scene.gaussians.vertex.nbytes * 3  # the PLY, its arrays, the rasteriser's
+    parts = _parts(scene, cameras, sizes, dim, entries, p)
+    return sum(parts.values()) + _optimiser(n_gaussians, p)
+
+
+def rank_working_set(
+    n_gaussians: int,
+    n_columns: int,
+    scene: Scene,
+    cameras: list[Camera],
+    sizes: dict[str, tuple[int, int]],
+    dim: int,
+    entries: int,
+    p: FieldParams,
+    leader: bool,
+) -> int:
+    """Bytes one rank of a distributed fit holds besides its shard of the blend cache: the
+    feature maps (every rank reads them all), then the larger of two phases. First the PLY
+    and one view's rasterisation while the shards are built; the rank then lets the PLY go.
+    Then its `n_columns` Gaussians' optimiser state, the step's batch and, on the leader,
+    the gathered features of the field it writes (every rank's [G / world, S + 1] float64
+    rows, then [G, S] in PLY order)."""
+    parts = _parts(scene, cameras, sizes, dim, entries, p)
+    build = parts["gaussians"] + parts["raster"]
+    fit = _optimiser(n_columns, p) + parts["batch"]
+    if leader:
+        fit += n_gaussians * ((p.sem_dim + 1) * 8 + p.sem_dim * 4)
+    return parts["features"] + max(build, fit)
+
+
+def _optimiser(n_gaussians: int, p: FieldParams) -> int:
     # features, gradient, Adam's two moments, the transpose's block buffers, and a copy of the
     # features in PLY order when the field is saved
-    optimiser = n_gaussians * p.sem_dim * 4 * (5 + T_BLOCKS)
+    return n_gaussians * p.sem_dim * 4 * (5 + T_BLOCKS)
+
+
+def _parts(
+    scene: Scene,
+    cameras: list[Camera],
+    sizes: dict[str, tuple[int, int]],
+    dim: int,
+    entries: int,
+    p: FieldParams,
+) -> dict[str, int]:
+    cells = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
     per_step = max(w * h for w, h in cells.values()) * p.views_per_step
     if p.cells_per_view:
         per_step = min(per_step, p.cells_per_view * p.views_per_step)
-    batch = per_step * (entries * 4 * 4 + dim * (2 + 4 + 4))
-    raster = max(c.width * c.height for c in cameras) * _ENTRIES_PER_PIXEL * _ENTRY_BYTES
-    return features + gaussians + optimiser + batch + raster
+    return {
+        "features": sum(w * h for w, h in cells.values()) * dim * 2,  # float16
+        "gaussians": scene.gaussians.vertex.nbytes * 3,  # the PLY, its arrays, the rasteriser's
+        "batch": per_step * (entries * 4 * 4 + dim * (2 + 4 + 4)),
+        "raster": max(c.width * c.height for c in cameras) * _ENTRIES_PER_PIXEL * _ENTRY_BYTES,
+    }
