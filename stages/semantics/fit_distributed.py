@@ -12,6 +12,7 @@ the leader (rank 0) gathers the features at the end and writes today's field art
 
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 
@@ -36,6 +37,7 @@ from stages.semantics.field import save_field
 from stages.semantics.field_model import FieldModel, FieldParams
 from stages.semantics.fit_field import (
     FieldRun,
+    deterministic,
     draw_cells,
     loss_line,
     make_optimizer,
@@ -53,6 +55,7 @@ def rank_checkpoints(out: Path, rank: int, world: int) -> tuple[Path, Path]:
     return latest, latest.with_name(latest.name + ".prev")
 
 
+@deterministic
 def fit_field_distributed(
     scene: Scene,
     features_path: Path,
@@ -62,11 +65,21 @@ def fit_field_distributed(
     report: Report = SILENT,
 ) -> Path:
     torchrun_env()  # refused before anything else when torchrun did not start this process
-    ranks = start(run.dist_timeout_s, run.threads)
+    before = signal.signal(signal.SIGTERM, _stopped)
     try:
-        return _fit(scene, features_path, codebook_path, p, run, ranks, report)
+        ranks = start(run.dist_timeout_s, run.threads)
+        try:
+            return _fit(scene, features_path, codebook_path, p, run, ranks, report)
+        finally:
+            stop()
     finally:
-        stop()
+        signal.signal(signal.SIGTERM, before)
+
+
+def _stopped(signum: int, frame: object) -> None:
+    """torchrun stops the other ranks with SIGTERM when one fails (a scheduler does when a
+    job ends): unwind like an error, so that the files being written are removed."""
+    raise GoiError("--distributed: stopped by SIGTERM (another rank failed, or the job ended)")
 
 
 def _fit(

@@ -78,7 +78,7 @@ def field_inputs(scene: Scene, features_path: Path, codebook_path: Path) -> dict
     }
 
 
-def _deterministic(fn: Callable[..., Path]) -> Callable[..., Path]:
+def deterministic(fn: Callable[..., Path]) -> Callable[..., Path]:
     """Run with torch's deterministic kernels. The codebook's gradient through T[argmax e] is an
     indexed accumulation, which torch otherwise runs with unordered parallel adds on the CPU, so
     two runs with the same seed would differ in the last bits."""
@@ -221,7 +221,7 @@ def loss_line(curve: list[list[float]]) -> Callable[[object], str]:
     return show
 
 
-@_deterministic
+@deterministic
 def fit_field(
     scene: Scene,
     features_path: Path,
@@ -230,10 +230,8 @@ def fit_field(
     run: FieldRun,
     report: Report = SILENT,
 ) -> Path:
-    if run.distributed:
-        from stages.semantics.fit_distributed import fit_field_distributed
-
-        return fit_field_distributed(scene, features_path, codebook_path, p, run, report)
+    if run.distributed:  # the CLI calls fit_distributed.fit_field_distributed for it
+        raise GoiError("--distributed: a distributed fit runs fit_field_distributed")
     # Everything is checked before the blend cache is built (minutes on a big scene).
     s = prepare_fit(scene, features_path, codebook_path, p, run)
     cache_path, train, views, sizes = s.cache_path, s.train, s.views, s.sizes
