@@ -111,14 +111,15 @@ class ShardPlan:
 def plan_shard(
     cache: Path,
     scene: Scene,
+    n: int,
     k: int,
     want: dict[str, tuple[int, int]],
     ranks: Ranks,
     force: bool,
 ) -> tuple[ShardPlan, bool]:
     """This rank's shard and whether it can be reused as it is. Shards built for another
-    world size are refused unless `force` (then new ones are built beside them)."""
-    n = scene.gaussians.count
+    world size are refused unless `force` (then new ones are built beside them). `n`: the
+    scene's Gaussians (from the PLY's header: the Gaussians themselves are not read here)."""
     lo, hi = column_range(n, ranks.world, ranks.rank)
     plan = ShardPlan(
         shard_path(cache, ranks.rank, ranks.world),

@@ -12,6 +12,7 @@ the leader (rank 0) gathers the features at the end and writes today's field art
 
 from __future__ import annotations
 
+import resource
 import signal
 import time
 from pathlib import Path
@@ -24,10 +25,11 @@ from stages.core.arrays import unit_norms
 from stages.core.errors import GoiError
 from stages.core.files import check_output_name, refuse_if_input, refuse_inputs
 from stages.core.report import SILENT, Report
+from stages.scene.gaussians import ply_count
 from stages.scene.scene import Scene
 from stages.semantics.blend_cache import cache_nbytes, cache_sizes
 from stages.semantics.cache_shards import SCHEMA as SHARD_CACHE
-from stages.semantics.cache_shards import build_shards, plan_shard, shard_order
+from stages.semantics.cache_shards import build_shards, column_range, plan_shard, shard_order
 from stages.semantics.checkpoint import SHARD_SCHEMA, check_checkpoint, load_checkpoint
 from stages.semantics.checkpoint import save_checkpoint as save_ckpt
 from stages.semantics.distributed import Ranks, SumOverRanks, collective, start, stop, torchrun_env
@@ -37,6 +39,7 @@ from stages.semantics.field import save_field
 from stages.semantics.field_model import FieldModel, FieldParams
 from stages.semantics.fit_field import (
     FieldRun,
+    check_renders,
     deterministic,
     draw_cells,
     loss_line,
@@ -92,10 +95,10 @@ def _fit(
     report: Report,
 ) -> Path:
     report = report if ranks.leader else SILENT
-    s = prepare_fit(scene, features_path, codebook_path, p, run)
-    n = scene.gaussians.count
+    n = ply_count(scene.ply_path)  # the Gaussians themselves are read only to build shards
+    s = prepare_fit(scene, features_path, codebook_path, p, run, n_gaussians=n)
     want = cache_sizes(s.train, s.sizes)
-    plan, reuse = plan_shard(s.cache_path, scene, p.top_k, want, ranks, run.force)
+    plan, reuse = plan_shard(s.cache_path, scene, n, p.top_k, want, ranks, run.force)
     n_cols = plan.hi - plan.lo
     latest, prev = rank_checkpoints(run.out, ranks.rank, ranks.world)
     for c in (latest, prev):
@@ -113,18 +116,25 @@ def _fit(
             if c.is_file():
                 found[check_checkpoint(c, s.inputs, config, shapes, SHARD_SCHEMA, attrs)] = c
 
+    building = not ranks.all_agree(reuse, "the check of the blend cache shards")
+    if building:
+        check_renders(scene)
     budget = memory_budget(run.max_memory_gib)
-    entries = s.codebook.shape[0]
-    need = rank_working_set(n, n_cols, scene, s.train, s.sizes, s.dim, entries, p, ranks.leader)
+    need = rank_working_set(
+        n, n_cols, scene, s.train, s.sizes, s.dim, s.codebook.shape[0], p, ranks.leader,
+        building, ranks.world,
+    )  # fmt: skip
     if need > budget:
         raise GoiError(
             f"--max-memory-gib: rank {ranks.rank} needs at least {need / GIB:.2f} GiB beside "
-            f"its blend cache shard (features, the PLY while the shards are built, its "
-            f"{n_cols} Gaussians' optimiser state), more than the {budget / GIB:.2f} GiB "
+            f"its blend cache shard (features, {'the PLY while shards are built, ' * building}"
+            f"its {n_cols} Gaussians' optimiser state), more than the {budget / GIB:.2f} GiB "
             "allowed; raise it, or start more ranks"
         )
-    if not ranks.all_agree(reuse, "the check of the blend cache shards"):
+    if building:
         build_shards(plan, scene, s.train, p.top_k, want, ranks, s.cache_path, report)
+        # The PLY was needed to rasterise the shards; the fit is not.
+        scene.__dict__.pop("gaussians", None)
     per_view = cache_nbytes(plan.path, s.views)
     stream = need + sum(per_view.values()) > budget
     if stream:
@@ -137,8 +147,6 @@ def _fit(
             )
         report.log(f"streaming the blend cache shards ({plan.path} on rank {ranks.rank})")
     order = shard_order(plan)  # [n_cols] PLY ids of this rank's Gaussians
-    # The PLY was needed for the checks and to rasterise the shards; the fit is not.
-    scene.__dict__.pop("gaussians", None)
 
     fm = load_features(features_path, s.views, unit=False)
     targets = {v: m.reshape(-1, fm.dim) for v, m in fm.maps.items()}  # [cells, D] float16
@@ -196,16 +204,24 @@ def _fit(
         f"{time.perf_counter() - t_fit:.1f} s; all_reduce {sent / 1024:.0f} KiB per step"
     )
     features = _gather_features(model.features.detach(), order, n, ranks)
-    if ranks.leader:
-        assert features is not None
+    if features is not None:
         arrays = {k: v for k, v in model.arrays().items() if k != "features"}
         arrays["features"] = features
         save_field(run.out, arrays, np.asarray(curve), s.views, config, s.inputs, run.force)
-    ranks.barrier("the field's write")
+        del features, arrays
+    peaks = ranks.gather_objects(_peak_rss(), "the field's write")
+    report.log(
+        "peak resident memory per rank: " + ", ".join(f"{x / GIB:.3f}" for x in peaks) + " GiB"
+    )
     for c in (latest, prev):
         refuse_if_input(c)
         c.unlink(missing_ok=True)
     return run.out
+
+
+def _peak_rss() -> int:
+    """This process's peak resident memory so far (bytes; Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
 def _resume_point(found: dict[int, Path], ranks: Ranks) -> int:
@@ -221,21 +237,22 @@ def _gather_features(
     n_gaussians: int,
     ranks: Ranks,
 ) -> np.ndarray | None:
-    """Every rank's features on the leader, in PLY order [G, S]; None on the other ranks."""
-    width = -(-n_gaussians // ranks.world)  # the largest shard (column_range)
-    rows = torch.zeros(width, features.shape[1] + 1, dtype=torch.float64)
-    rows[: len(order), 0] = torch.from_numpy(order.astype(np.float64))
-    rows[: len(order), 1:] = features.double()  # float32 and int32 ids: exact in float64
-    sizes = torch.tensor([len(order)])
-    parts = [torch.zeros_like(rows) for _ in range(ranks.world)] if ranks.leader else None
-    counts = [torch.zeros_like(sizes) for _ in range(ranks.world)] if ranks.leader else None
-    with collective("the gather of the features", ranks.timeout_s):
-        dist.gather(sizes, counts, dst=0)
-        dist.gather(rows, parts, dst=0)
-    if parts is None or counts is None:
-        return None
-    out = np.zeros((n_gaussians, features.shape[1]), np.float32)
-    for part, count in zip(parts, counts, strict=True):
-        got = part[: int(count)].numpy()
-        out[got[:, 0].astype(np.int64)] = got[:, 1:].astype(np.float32)
+    """Every rank's features on the leader, in PLY order [G, S] (None on the other ranks).
+    The leader receives one rank's share at a time and puts it in place, so that it holds the
+    field's features once and a single share beside them."""
+    ids = torch.from_numpy(order.astype(np.int32))
+    with collective("sending the features to rank 0", ranks.timeout_s):
+        if not ranks.leader:
+            dist.send(ids, dst=0)
+            dist.send(features.contiguous(), dst=0)
+            return None
+        out = np.zeros((n_gaussians, features.shape[1]), np.float32)
+        out[order] = features.numpy()
+        for r in range(1, ranks.world):
+            lo, hi = column_range(n_gaussians, ranks.world, r)
+            got_ids = torch.empty(hi - lo, dtype=torch.int32)
+            got = torch.empty(hi - lo, features.shape[1], dtype=features.dtype)
+            dist.recv(got_ids, src=r)
+            dist.recv(got, src=r)
+            out[got_ids.numpy()] = got.numpy()
     return out

@@ -65,6 +65,10 @@ class FieldRun:
     local ranks, so that the ranks of a node do not oversubscribe its cores)."""
 
     @property
+    def cache_path(self) -> Path:
+        return self.cache or self.out.with_name("blend_cache.h5")
+
+    @property
     def checkpoint(self) -> Path:
         return self.out.with_name(self.out.name + ".ckpt")
 
@@ -110,20 +114,7 @@ class FitSetup:
     shapes: dict[str, tuple[int, ...]]  # the parameters' shapes (a checkpoint must match)
 
 
-def prepare_fit(
-    scene: Scene, features_path: Path, codebook_path: Path, p: FieldParams, run: FieldRun
-) -> FitSetup:
-    """Every check on the options and inputs; nothing is built or written."""
-    check_params(p)
-    check_params(run)
-    check_writable(run.out, run.force, "--out")
-    cache_path = run.cache or run.out.with_name("blend_cache.h5")
-    # <out>.ckpt is written while fitting and removed at the end, so it is an output too
-    check_output_name(run.checkpoint, "--out")
-    outputs = {"--out": run.out, "--cache": cache_path, "--out (its checkpoint)": run.checkpoint}
-    refuse_inputs(outputs, [scene.ply_path, *scene.camera_files, features_path, codebook_path])
-    if cache_path.resolve() == run.out.resolve():
-        raise GoiError(f"--cache: {cache_path} is also --out; give them different paths")
+def check_renders(scene: Scene) -> None:
     g = scene.gaussians
     renderable = g.valid if g.valid.size else np.ones(g.count, bool)
     if not (g.opacities[renderable] >= ALPHA_MIN).any():
@@ -131,6 +122,32 @@ def prepare_fit(
             f"{scene.ply_path}: every Gaussian is transparent (opacity below {ALPHA_MIN:.4f}): "
             "nothing renders, so there is nothing to fit"
         )
+
+
+def prepare_fit(
+    scene: Scene,
+    features_path: Path,
+    codebook_path: Path,
+    p: FieldParams,
+    run: FieldRun,
+    n_gaussians: int | None = None,
+) -> FitSetup:
+    """Every check on the options and inputs; nothing is built or written. With
+    `n_gaussians` (a distributed fit, from the PLY's header) the Gaussians are not read: the
+    caller checks them (`check_renders`) if it rasterises them."""
+    check_params(p)
+    check_params(run)
+    check_writable(run.out, run.force, "--out")
+    cache_path = run.cache_path
+    # <out>.ckpt is written while fitting and removed at the end, so it is an output too
+    check_output_name(run.checkpoint, "--out")
+    outputs = {"--out": run.out, "--cache": cache_path, "--out (its checkpoint)": run.checkpoint}
+    refuse_inputs(outputs, [scene.ply_path, *scene.camera_files, features_path, codebook_path])
+    if cache_path.resolve() == run.out.resolve():
+        raise GoiError(f"--cache: {cache_path} is also --out; give them different paths")
+    if n_gaussians is None:  # the Gaussians are read here, and checked
+        check_renders(scene)
+        n_gaussians = scene.gaussians.count
     train = scene.views("train")
     views = [c.name for c in train]
     sizes = feature_grid(features_path, views)
@@ -142,7 +159,7 @@ def prepare_fit(
             f"but the features in {features_path} have {dim}"
         )
     shapes = {
-        "features": (g.count, p.sem_dim),
+        "features": (n_gaussians, p.sem_dim),
         "decoder_weight": (dim if p.no_tfcc else codebook.shape[0], p.sem_dim),
         "decoder_bias": (dim if p.no_tfcc else codebook.shape[0],),
         "codebook": codebook.shape,

@@ -72,18 +72,21 @@ def rank_working_set(
     entries: int,
     p: FieldParams,
     leader: bool,
+    building: bool,
+    world: int,
 ) -> int:
     """Bytes one rank of a distributed fit holds besides its shard of the blend cache: the
-    feature maps (every rank reads them all), then the larger of two phases. First the PLY
-    and one view's rasterisation while the shards are built; the rank then lets the PLY go.
-    Then its `n_columns` Gaussians' optimiser state, the step's batch and, on the leader,
-    the gathered features of the field it writes (every rank's [G / world, S + 1] float64
-    rows, then [G, S] in PLY order)."""
-    parts = _parts(scene, cameras, sizes, dim, entries, p)
-    build = parts["gaussians"] + parts["raster"]
+    feature maps (every rank reads them all), then the larger of two phases. While the
+    shards are `building`, the PLY and one view's rasterisation (rasterising a view needs
+    every Gaussian; the rank lets them go before fitting; with shards already built the PLY
+    is never read). Then its `n_columns` Gaussians' optimiser state, the step's batch and,
+    on the leader, the field's [G, S] features in PLY order and one other rank's share of
+    them at a time as it receives them."""
+    parts = _parts(scene, cameras, sizes, dim, entries, p, building)
+    build = parts["gaussians"] + parts["raster"] if building else 0
     fit = _optimiser(n_columns, p) + parts["batch"]
     if leader:
-        fit += n_gaussians * ((p.sem_dim + 1) * 8 + p.sem_dim * 4)
+        fit += n_gaussians * p.sem_dim * 4 + -(-n_gaussians // world) * (p.sem_dim + 1) * 4
     return parts["features"] + max(build, fit)
 
 
@@ -100,6 +103,7 @@ def _parts(
     dim: int,
     entries: int,
     p: FieldParams,
+    gaussians: bool = True,
 ) -> dict[str, int]:
     cells = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
     per_step = max(w * h for w, h in cells.values()) * p.views_per_step
@@ -107,7 +111,8 @@ def _parts(
         per_step = min(per_step, p.cells_per_view * p.views_per_step)
     return {
         "features": sum(w * h for w, h in cells.values()) * dim * 2,  # float16
-        "gaussians": scene.gaussians.vertex.nbytes * 3,  # the PLY, its arrays, the rasteriser's
+        # the PLY, its arrays, the rasteriser's (counted only when they are read)
+        "gaussians": scene.gaussians.vertex.nbytes * 3 if gaussians else 0,
         "batch": per_step * (entries * 4 * 4 + dim * (2 + 4 + 4)),
         "raster": max(c.width * c.height for c in cameras) * _ENTRIES_PER_PIXEL * _ENTRY_BYTES,
     }

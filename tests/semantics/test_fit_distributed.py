@@ -207,13 +207,13 @@ def test_a_world_size_other_than_the_shards_is_refused(tmp_path):
         shard_path(cache, r, 2).write_bytes(b"")
     want = {"c0": (20, 16)}
     with pytest.raises(GoiError, match=r"were built for 2 ranks, this run has 3; start torchrun"):
-        plan_shard(cache, scene, FieldParams().top_k, want, Ranks(0, 3, 3, 1.0), force=False)
-    plan, reuse = plan_shard(cache, scene, 0, want, Ranks(2, 3, 3, 1.0), force=True)
+        plan_shard(cache, scene, 60, FieldParams().top_k, want, Ranks(0, 3, 3, 1.0), force=False)
+    plan, reuse = plan_shard(cache, scene, 60, 0, want, Ranks(2, 3, 3, 1.0), force=True)
     assert plan.path.name == "blend_cache.shard-2-of-3.h5" and not reuse
     assert (plan.lo, plan.hi) == (40, 60)
     # a file of the same name that is not this rank's shard: refused without --force
     with pytest.raises(GoiError, match=r"is not this rank's shard"):
-        plan_shard(cache, scene, 0, want, Ranks(1, 2, 2, 1.0), force=False)
+        plan_shard(cache, scene, 60, 0, want, Ranks(1, 2, 2, 1.0), force=False)
 
 
 @pytest.mark.slow
