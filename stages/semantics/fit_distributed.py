@@ -201,7 +201,7 @@ def _fit(
             checkpoint(done)  # the last one too: a leader lost while writing the field resumes
     report.log(
         f"fitted {len(steps)} iterations on {ranks.world} ranks in "
-        f"{time.perf_counter() - t_fit:.1f} s; all_reduce {sent / 1024:.0f} KiB per step"
+        f"{time.perf_counter() - t_fit:.1f} s; all_reduce of {sent} bytes per step"
     )
     features = _gather_features(model.features.detach(), order, n, ranks)
     if features is not None:
