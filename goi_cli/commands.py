@@ -82,7 +82,7 @@ def fit_field_cmd(features: Path, codebook: Path, **kw) -> None:
     Training renders through the blend cache, which is built once per PLY and cameras and
     reused. A checkpoint is written every --checkpoint-every iterations; --resume continues it.
 
-    One scene on several processes or machines: `torchrun --nproc-per-node N -m goi_cli
+    One scene on several processes or machines: `torchrun --nproc-per-node N -m goi
     fit-field --distributed ...` splits the Gaussians across the ranks (docs/scaling.md).
     """
     from stages.semantics.distributed import torchrun_env

@@ -99,7 +99,7 @@ def torchrun_env() -> tuple[int, int, int]:
     if missing:
         raise GoiError(
             f"--distributed: not started by torchrun ({', '.join(missing)} not set); run "
-            "`torchrun --nproc-per-node N -m goi_cli fit-field --distributed ...`, or drop "
+            "`torchrun --nproc-per-node N -m goi fit-field --distributed ...`, or drop "
             "--distributed"
         )
     try:

@@ -54,7 +54,7 @@ class FieldRun:
     """Replace an existing output."""
     distributed: bool = False
     """Split the Gaussians across the ranks torchrun started (`torchrun --nproc-per-node N
-    -m goi_cli fit-field --distributed ...`): each rank keeps its Gaussians' features, Adam
+    -m goi fit-field --distributed ...`): each rank keeps its Gaussians' features, Adam
     state and blend-cache columns, and one all_reduce per step sums the rendered features.
     Gives the single-process field within float rounding (docs/scaling.md)."""
     dist_timeout_s: Annotated[float, POSITIVE] = 600.0

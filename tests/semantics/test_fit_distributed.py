@@ -110,7 +110,7 @@ def fitted(tmp_path_factory):
 
 def torchrun(n: int, args: list[str], cwd: Path, script: str | None = None):  # noqa: ANN201
     cmd = [TORCHRUN, "--standalone", "--nproc-per-node", str(n)]
-    cmd += [script] if script else ["-m", "goi_cli"]
+    cmd += [script] if script else ["-m", "goi"]
     return subprocess.run([*cmd, *args], cwd=cwd, capture_output=True, text=True, timeout=300)
 
 
@@ -164,7 +164,7 @@ def test_a_killed_rank_stops_the_run_and_the_rerun_resumes(fitted):
 
     root, args = fitted
     out = root / "killed.h5"
-    cmd = [TORCHRUN, "--standalone", "--nproc-per-node", "2", "-m", "goi_cli", *args]
+    cmd = [TORCHRUN, "--standalone", "--nproc-per-node", "2", "-m", "goi", *args]
     cmd += ["--out", str(out), "--checkpoint-every", "10"]
     proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     ckpt = root / "killed.h5.ckpt-1-of-2"
