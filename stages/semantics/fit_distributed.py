@@ -173,7 +173,9 @@ def _fit(
             found[first], model, opt, rng, s.inputs, config, SHARD_SCHEMA, attrs
         )
         report.log(f"resuming the {ranks.world} ranks' checkpoints at iteration {first}")
-    elif not run.resume:
+    elif run.resume:
+        report.log("--resume: no iteration every rank has a checkpoint of; starting at 0")
+    else:
         for c in (latest, prev):  # another run's: never mixed with this one's
             refuse_if_input(c)
             c.unlink(missing_ok=True)
