@@ -147,11 +147,22 @@ def suite_distributed(repeat: int, tmp: Path, size: DistSize | None = None) -> d
     out["distributed_gaussian_part_ratio_2ranks_to_1"] = part2 / part1 if part1 > 0 else 0.0
 
     p = FieldParams(iterations=size.iterations)
-    a, b = load_field(big / "single.h5"), load_field(big / "r2_fit.h5")
-    out["distributed_field_max_abs_diff"] = float(np.abs(a.features - b.features).max())
-    out["distributed_field_max_abs_diff_codebook"] = float(np.abs(a.codebook - b.codebook).max())
-    same = a.decode_index(a.features) == b.decode_index(b.features)
-    out["distributed_same_decoded_fraction"] = float(same.mean())
+    # The baseline of the agreement: the single process's own paper-formulation path, which
+    # adds the same sums in another order too (docs/performance.md).
+    rc, _, _, text_ref = _goi(["fit-field", *fit, "--out", str(big / "reference.h5"), "--cache",
+                               str(big / "c1.h5"), "--reference-losses"], log)  # fmt: skip
+    if rc != 0:
+        raise SystemExit(f"fit-field --reference-losses failed:\n{text_ref[-3000:]}")
+    a = load_field(big / "single.h5")
+    for key, other in (("", "r2_fit.h5"), ("_1rank", "r1_fit.h5"),
+                       ("_reference_losses", "reference.h5")):  # fmt: skip
+        b = load_field(big / other)
+        out[f"distributed_field_max_abs_diff{key}"] = float(np.abs(a.features - b.features).max())
+        out[f"distributed_field_max_abs_diff_codebook{key}"] = float(
+            np.abs(a.codebook - b.codebook).max()
+        )
+        same = a.decode_index(a.features) == b.decode_index(b.features)
+        out[f"distributed_same_decoded_fraction{key}"] = float(same.mean())
 
     # A budget that refuses one process but holds two ranks: between the single process's
     # own estimate and the 2-rank run's measured peak.
