@@ -202,8 +202,9 @@ def _fit(
         if run.checkpoint_every and (done % run.checkpoint_every == 0 or done == p.iterations):
             checkpoint(done)  # the last one too: a leader lost while writing the field resumes
     report.log(
-        f"fitted {len(steps)} iterations on {ranks.world} ranks in "
-        f"{time.perf_counter() - t_fit:.1f} s; all_reduce of {sent} bytes per step"
+        f"fitted {len(steps)} iterations on {ranks.world} ranks ({torch.get_num_threads()} "
+        f"threads on rank 0) in {time.perf_counter() - t_fit:.1f} s; all_reduce of {sent} "
+        "bytes per step"
     )
     features = _gather_features(model.features.detach(), order, n, ranks)
     if features is not None:

@@ -105,7 +105,7 @@ def fitted(tmp_path_factory):
     ]
     r = torchrun(2, [*args, "--out", str(root / "dist.h5")], root)
     assert r.returncode == 0, r.stderr[-2000:]
-    return root, args
+    return root, args, r.stderr
 
 
 def torchrun(n: int, args: list[str], cwd: Path, script: str | None = None):  # noqa: ANN201
@@ -122,7 +122,7 @@ def goi_lines(text: str) -> list[str]:
 def test_two_ranks_give_the_single_process_field(fitted):
     from stages.semantics.field import load_field
 
-    root, _ = fitted
+    root, _, err = fitted
     a, b = load_field(root / "single.h5"), load_field(root / "dist.h5")
     for name in ("features", "decoder_weight", "decoder_bias", "codebook"):
         diff = np.abs(getattr(a, name) - getattr(b, name)).max()
@@ -137,6 +137,9 @@ def test_two_ranks_give_the_single_process_field(fitted):
         "blend_cache.shard-1-of-2.h5",
     ]
     assert not list(root.glob("dist.h5.ckpt*")) and not list(root.glob(".goi-*"))
+    # two ranks on this machine share its cores: no rank runs more threads than its share
+    share = max(1, len(os.sched_getaffinity(0)) // 2)
+    assert f"ranks ({share} threads on rank 0)" in err
 
 
 def _children(pid: int) -> list[int]:
@@ -162,7 +165,7 @@ def _rank_of(pid: int) -> int | None:
 def test_a_killed_rank_stops_the_run_and_the_rerun_resumes(fitted):
     from stages.semantics.field import load_field
 
-    root, args = fitted
+    root, args, _ = fitted
     out = root / "killed.h5"
     cmd = [TORCHRUN, "--standalone", "--nproc-per-node", "2", "-m", "goi", *args]
     cmd += ["--out", str(out), "--checkpoint-every", "10"]
@@ -218,7 +221,7 @@ def test_a_world_size_other_than_the_shards_is_refused(tmp_path):
 
 @pytest.mark.slow
 def test_ranks_of_different_goi_versions_are_refused_at_the_rendezvous(fitted, tmp_path):
-    root, args = fitted
+    root, args, _ = fitted
     script = tmp_path / "mixed.py"
     script.write_text(
         "import os, sys\n"
