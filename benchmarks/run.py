@@ -4,7 +4,8 @@
 
 Suites: raster, pooled (the pooled blend cache at 3M Gaussians), field, query (goi's own
 stages) and models (the RES models at their real size, random weights, exported and timed in
-onnxruntime; benchmarks/models.py).
+onnxruntime; benchmarks/models.py), distributed (fit-field on 1 and 2 torchrun ranks against
+one process: memory, all_reduce bytes, agreement; benchmarks/distributed.py).
 
 Figures are measured, never asserted: tests check behaviour, this checks speed.
 """
@@ -380,6 +381,12 @@ def suite_scale(repeat: int, tmp: Path) -> dict[str, float]:
     return run(repeat, tmp)
 
 
+def suite_distributed(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.distributed import suite_distributed as run
+
+    return run(repeat, tmp)
+
+
 def suite_models(repeat: int, tmp: Path) -> dict[str, float]:
     from benchmarks.models import suite_models as models
 
@@ -435,6 +442,7 @@ SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "scale": suite_scale,
     "models": suite_models,
     "public-eval": suite_public_eval,
+    "distributed": suite_distributed,
 }
 
 

@@ -81,12 +81,20 @@ def fit_field_cmd(features: Path, codebook: Path, **kw) -> None:
 
     Training renders through the blend cache, which is built once per PLY and cameras and
     reused. A checkpoint is written every --checkpoint-every iterations; --resume continues it.
+
+    One scene on several processes or machines: `torchrun --nproc-per-node N -m goi
+    fit-field --distributed ...` splits the Gaussians across the ranks (docs/scaling.md).
     """
+    from stages.semantics.distributed import torchrun_env
+    from stages.semantics.fit_distributed import fit_field_distributed
     from stages.semantics.fit_field import fit_field
 
-    scene = load_scene_from(kw)
     p, run = build(FieldParams, kw), build(FieldRun, kw)
-    out = fit_field(scene, features, codebook, p, run, TERMINAL)
+    if run.distributed:
+        torchrun_env()  # first: without torchrun there is nothing to check the rest for
+    scene = load_scene_from(kw)
+    fit = fit_field_distributed if run.distributed else fit_field
+    out = fit(scene, features, codebook, p, run, TERMINAL)
     click.echo(f"field: {out}")
 
 

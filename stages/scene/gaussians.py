@@ -95,8 +95,16 @@ class Gaussians:
         return [n for n in (self.vertex.dtype.names or ()) if n not in known]
 
 
-def _check_header(path: Path) -> None:
-    """Refuse truncated files and absurd sizes before plyfile allocates anything."""
+def ply_count(path: str | os.PathLike[str]) -> int:
+    """The number of Gaussians a PLY declares, from its header alone (checked as `load_ply`
+    checks it): for a stage that needs the count but not the Gaussians."""
+    p = regular_file(path, "PLY file")
+    return _check_header(p)
+
+
+def _check_header(path: Path) -> int:
+    """Refuse truncated files and absurd sizes before plyfile allocates anything; returns the
+    declared vertex count."""
     size = path.stat().st_size
     with open(path, "rb") as f:
         head = f.read(1 << 16)
@@ -151,6 +159,7 @@ def _check_header(path: Path) -> None:
                 f"{path}: truncated or corrupt: the header declares {count} {rows} "
                 f"(at least {need} bytes of data up to them) but the file holds {have} bytes"
             )
+    return vert[1]
 
 
 def load_ply(path: str | os.PathLike[str]) -> Gaussians:

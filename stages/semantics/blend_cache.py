@@ -104,7 +104,7 @@ class BlendCache:
             put(f, "order", self.order)
             views = f.create_group("views", track_order=True)
             for name, vw in self.views.items():
-                _write_view(views, name, vw)
+                write_view(views, name, vw)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> BlendCache:
@@ -302,7 +302,7 @@ def build_cache_file(
             if len(todo) < len(cameras):
                 report.log(f"resuming {partial}: {len(cameras) - len(todo)} views done")
             for cam in report.progress(todo, "blend cache", length=len(todo)):
-                _write_view(views, cam.name, view_weights(rast, cam, position, k, want[cam.name]))
+                write_view(views, cam.name, view_weights(rast, cam, position, k, want[cam.name]))
                 f.flush()
             stamp(f, SCHEMA, inputs)  # once, at the end: equal inputs give equal bytes
     with open(partial, "rb+") as fh:
@@ -347,7 +347,7 @@ def _partial_problem(
     return None
 
 
-def _write_view(views: h5py.Group, name: str, vw: ViewWeights) -> None:
+def write_view(views: h5py.Group, name: str, vw: ViewWeights) -> None:
     grp = views.create_group(name)
     grp.attrs.update(
         width=vw.width, height=vw.height, mass_kept=vw.mass_kept, entries_total=vw.entries_total

@@ -15,6 +15,7 @@ from stages.core.errors import GoiError
 from stages.semantics.field_model import PARAMETERS, FieldModel
 
 SCHEMA = "goi.field_checkpoint"
+SHARD_SCHEMA = "goi.field_checkpoint_shard"
 
 
 def save_checkpoint(
@@ -26,12 +27,17 @@ def save_checkpoint(
     curve: list[list[float]],
     inputs: dict[str, str],
     config: dict,
+    schema: str = SCHEMA,
+    attrs: dict[str, int] | None = None,
 ) -> None:
-    with write_h5(path, SCHEMA, inputs, force=True) as f:
+    """`schema` and `attrs`: a distributed fit's per-rank checkpoint (SHARD_SCHEMA) records
+    its rank and columns."""
+    with write_h5(path, schema, inputs, force=True) as f:
         f.attrs.update(
             iteration=iteration,
             rng_state=json.dumps(rng.bit_generator.state),
             config=json.dumps(config, sort_keys=True),
+            **(attrs or {}),
         )
         # Per-Gaussian rows in PLY order, whatever order the model holds them in.
         for name, p in zip(PARAMETERS, model.parameter_list(), strict=True):
@@ -51,11 +57,23 @@ def _same(a: np.ndarray) -> np.ndarray:
 
 
 def check_checkpoint(
-    path: Path, inputs: dict[str, str], config: dict, shapes: dict[str, tuple[int, ...]]
-) -> None:
+    path: Path,
+    inputs: dict[str, str],
+    config: dict,
+    shapes: dict[str, tuple[int, ...]],
+    schema: str = SCHEMA,
+    attrs: dict[str, int] | None = None,
+) -> int:
     """Refuse, before any work, a checkpoint that is damaged or was made from other inputs,
-    other options or for other tensor shapes."""
-    with open_h5(path, SCHEMA) as f:
+    other options, for other tensor shapes (or another rank's columns: `attrs`); returns the
+    iteration it reached."""
+    with open_h5(path, schema) as f:
+        for key, value in (attrs or {}).items():
+            if int(f.attrs[key]) != value:
+                raise GoiError(
+                    f"{path}: checkpoint has {key} {int(f.attrs[key])}, this rank {value}; "
+                    "delete it or run without --resume"
+                )
         if json.loads(f.attrs["inputs"]) != inputs:
             raise GoiError(
                 f"{path}: checkpoint was made from other inputs (scene, features or "
@@ -79,6 +97,7 @@ def check_checkpoint(
             np.random.default_rng().bit_generator.state = json.loads(f.attrs["rng_state"])
         except (ValueError, TypeError, KeyError) as e:
             raise GoiError(f"{path}: damaged checkpoint (sampler state: {e})") from None
+        return iteration
 
 
 def load_checkpoint(
@@ -88,12 +107,14 @@ def load_checkpoint(
     rng: np.random.Generator,
     inputs: dict[str, str],
     config: dict,
+    schema: str = SCHEMA,
+    attrs: dict[str, int] | None = None,
 ) -> tuple[int, list[list[float]]]:
     """Restore model, optimiser and sampler from `path`; returns the iteration reached and the
     loss curve so far. Refuses a checkpoint made from other inputs or options."""
     shapes = {n: tuple(t.shape) for n, t in zip(PARAMETERS, model.parameter_list(), strict=True)}
-    check_checkpoint(path, inputs, config, shapes)
-    with open_h5(path, SCHEMA) as f:
+    check_checkpoint(path, inputs, config, shapes, schema, attrs)
+    with open_h5(path, schema) as f:
         with torch.no_grad():
             for name, p in zip(PARAMETERS, model.parameter_list(), strict=True):
                 rows = model.model_rows if name == "features" else _same

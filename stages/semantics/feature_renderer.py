@@ -151,13 +151,15 @@ class FeatureRenderer:
         views: list[str],
         order: np.ndarray | None = None,
         check: bool = True,
+        schema: str = SCHEMA,
     ) -> FeatureRenderer:
         """The views' weights read from the cache file straight into the stacked arrays, so
         that memory holds them once. A fit that streams the cache calls this every step for
         that step's views, with the `order` it read once and `check` off (it checked every
         view once before, so the per-step read skips the schema validation of the whole file
-        as well)."""
-        opened = open_h5(path, SCHEMA) if check else h5py.File(path, "r")
+        as well). A distributed fit reads its shard of the cache (`schema`
+        goi.blend_cache_shard, with its columns' `order`) the same way."""
+        opened = open_h5(path, schema) if check else h5py.File(path, "r")
         with opened as f:
             n = int(f.attrs["n_gaussians"])
             order = read_order(f, path) if order is None else order

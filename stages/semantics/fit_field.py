@@ -21,9 +21,10 @@ from stages.core.arrays import unit_norms
 from stages.core.artifacts import check_writable, input_digest
 from stages.core.errors import GoiError
 from stages.core.files import check_output_name, output_lock, refuse_if_input, refuse_inputs
-from stages.core.params import NON_NEGATIVE, check_params
+from stages.core.params import NON_NEGATIVE, POSITIVE, check_params
 from stages.core.report import SILENT, Report, size_text
 from stages.render.constants import ALPHA_MIN
+from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 from stages.semantics.blend_cache import build_cache_file, cache_nbytes, cache_sizes, cache_target
 from stages.semantics.checkpoint import check_checkpoint, load_checkpoint, save_checkpoint
@@ -51,6 +52,21 @@ class FieldRun:
     budget below even that is refused before any work."""
     force: bool = False
     """Replace an existing output."""
+    distributed: bool = False
+    """Split the Gaussians across the ranks torchrun started (`torchrun --nproc-per-node N
+    -m goi fit-field --distributed ...`): each rank keeps its Gaussians' features, Adam
+    state and blend-cache columns, and one all_reduce per step sums the rendered features.
+    Gives the single-process field within float rounding (docs/scaling.md)."""
+    dist_timeout_s: Annotated[float, POSITIVE] = 600.0
+    """--distributed: seconds the rendezvous and every collective (all_reduce, barrier) may
+    wait for the other ranks before the run fails."""
+    threads: Annotated[int, NON_NEGATIVE] = 0
+    """--distributed: CPU threads per rank (0: this machine's cores divided by torchrun's
+    local ranks, so that the ranks of a node do not oversubscribe its cores)."""
+
+    @property
+    def cache_path(self) -> Path:
+        return self.cache or self.out.with_name("blend_cache.h5")
 
     @property
     def checkpoint(self) -> Path:
@@ -66,7 +82,7 @@ def field_inputs(scene: Scene, features_path: Path, codebook_path: Path) -> dict
     }
 
 
-def _deterministic(fn: Callable[..., Path]) -> Callable[..., Path]:
+def deterministic(fn: Callable[..., Path]) -> Callable[..., Path]:
     """Run with torch's deterministic kernels. The codebook's gradient through T[argmax e] is an
     indexed accumulation, which torch otherwise runs with unordered parallel adds on the CPU, so
     two runs with the same seed would differ in the last bits."""
@@ -83,41 +99,22 @@ def _deterministic(fn: Callable[..., Path]) -> Callable[..., Path]:
     return run
 
 
-@_deterministic
-def fit_field(
-    scene: Scene,
-    features_path: Path,
-    codebook_path: Path,
-    p: FieldParams,
-    run: FieldRun,
-    report: Report = SILENT,
-) -> Path:
-    # Everything is checked before the blend cache is built (minutes on a big scene).
-    check_params(p)
-    check_params(run)
-    check_writable(run.out, run.force, "--out")
-    cache_path = run.cache or run.out.with_name("blend_cache.h5")
-    # <out>.ckpt is written while fitting and removed at the end, so it is an output too
-    check_output_name(run.checkpoint, "--out")
-    outputs = {"--out": run.out, "--cache": cache_path, "--out (its checkpoint)": run.checkpoint}
-    refuse_inputs(outputs, [scene.ply_path, *scene.camera_files, features_path, codebook_path])
-    if cache_path.resolve() == run.out.resolve():
-        raise GoiError(f"--cache: {cache_path} is also --out; give them different paths")
-    # one run per output: a second run of the same --out (or --cache) is refused here, before
-    # it reads, builds or removes anything of the first run's
-    with output_lock(run.out, "--out"), output_lock(cache_path, "--cache"):
-        return _fit(scene, features_path, codebook_path, p, run, cache_path, report)
+@dataclass
+class FitSetup:
+    """What a fit reads and checks before any heavy work, shared by the single-process and
+    the distributed fit."""
+
+    cache_path: Path
+    train: list[Camera]
+    views: list[str]
+    sizes: dict[str, tuple[int, int]]  # view -> feature grid (width, height)
+    dim: int  # D, the features' dimension
+    codebook: np.ndarray  # [N, D]
+    inputs: dict[str, str]  # the inputs' digests, recorded in every artifact
+    shapes: dict[str, tuple[int, ...]]  # the parameters' shapes (a checkpoint must match)
 
 
-def _fit(
-    scene: Scene,
-    features_path: Path,
-    codebook_path: Path,
-    p: FieldParams,
-    run: FieldRun,
-    cache_path: Path,
-    report: Report,
-) -> Path:
+def check_renders(scene: Scene) -> None:
     g = scene.gaussians
     renderable = g.valid if g.valid.size else np.ones(g.count, bool)
     if not (g.opacities[renderable] >= ALPHA_MIN).any():
@@ -125,6 +122,32 @@ def _fit(
             f"{scene.ply_path}: every Gaussian is transparent (opacity below {ALPHA_MIN:.4f}): "
             "nothing renders, so there is nothing to fit"
         )
+
+
+def prepare_fit(
+    scene: Scene,
+    features_path: Path,
+    codebook_path: Path,
+    p: FieldParams,
+    run: FieldRun,
+    n_gaussians: int | None = None,
+) -> FitSetup:
+    """Every check on the options and inputs; nothing is built or written. With
+    `n_gaussians` (a distributed fit, from the PLY's header) the Gaussians are not read: the
+    caller checks them (`check_renders`) if it rasterises them."""
+    check_params(p)
+    check_params(run)
+    check_writable(run.out, run.force, "--out")
+    cache_path = run.cache_path
+    # <out>.ckpt is written while fitting and removed at the end, so it is an output too
+    check_output_name(run.checkpoint, "--out")
+    outputs = {"--out": run.out, "--cache": cache_path, "--out (its checkpoint)": run.checkpoint}
+    refuse_inputs(outputs, [scene.ply_path, *scene.camera_files, features_path, codebook_path])
+    if cache_path.resolve() == run.out.resolve():
+        raise GoiError(f"--cache: {cache_path} is also --out; give them different paths")
+    if n_gaussians is None:  # the Gaussians are read here, and checked
+        check_renders(scene)
+        n_gaussians = scene.gaussians.count
     train = scene.views("train")
     views = [c.name for c in train]
     sizes = feature_grid(features_path, views)
@@ -135,17 +158,121 @@ def _fit(
             f"{codebook_path}: codebook entries have dimension {codebook.shape[1]}, "
             f"but the features in {features_path} have {dim}"
         )
-    inputs = field_inputs(scene, features_path, codebook_path)
     shapes = {
-        "features": (g.count, p.sem_dim),
+        "features": (n_gaussians, p.sem_dim),
         "decoder_weight": (dim if p.no_tfcc else codebook.shape[0], p.sem_dim),
         "decoder_bias": (dim if p.no_tfcc else codebook.shape[0],),
         "codebook": codebook.shape,
     }
+    inputs = field_inputs(scene, features_path, codebook_path)
+    return FitSetup(cache_path, train, views, sizes, dim, codebook, inputs, shapes)
+
+
+def make_optimizer(model: FieldModel, p: FieldParams) -> torch.optim.Adam:
+    return torch.optim.Adam(
+        [
+            {"params": [model.features], "lr": p.lr_features, "eps": 1e-15},
+            {"params": model.decoder.parameters(), "lr": p.lr_decoder},
+            {"params": [model.codebook], "lr": p.lr_codebook},
+        ],
+        # one pass over the [G, S] features and their two moments, not ten
+        fused=not p.reference_losses,
+    )
+
+
+def draw_cells(
+    rng: np.random.Generator, views: list[str], sizes: dict[str, tuple[int, int]], p: FieldParams
+) -> list[tuple[str, np.ndarray]]:
+    """One step's sample: the views drawn (in list order) and each one's cells [C] int64.
+    Every rank of a distributed fit draws the same from the shared seed."""
+    pick = rng.choice(len(views), min(p.views_per_step, len(views)), replace=False)
+    drawn = []
+    for vi in sorted(pick):
+        v = views[vi]
+        n_cells = sizes[v][0] * sizes[v][1]
+        if 0 < p.cells_per_view < n_cells:
+            cells = np.sort(rng.choice(n_cells, p.cells_per_view, replace=False))
+        else:
+            cells = np.arange(n_cells)
+        drawn.append((v, cells))
+    return drawn
+
+
+def step_targets(
+    drawn: list[tuple[str, np.ndarray]],
+    targets: dict[str, np.ndarray],
+    norms: dict[str, np.ndarray],
+) -> torch.Tensor:
+    """The drawn cells' target features [B, D], unit, as `load_features` would give them."""
+    v_gt = torch.from_numpy(np.concatenate([targets[v][c] for v, c in drawn])).float()
+    v_gt.div_(torch.from_numpy(np.concatenate([norms[v][c] for v, c in drawn]))[:, None])
+    return v_gt
+
+
+def take_step(
+    model: FieldModel,
+    opt: torch.optim.Optimizer,
+    f_hat: torch.Tensor,  # [B, S] rendered features
+    v_gt: torch.Tensor,  # [B, D] unit targets
+    it: int,
+    p: FieldParams,
+) -> list[float]:
+    """The losses, their gradients and one Adam step; the loss terms (LOSS_NAMES)."""
+    loss, parts = field_losses(model, f_hat, v_gt, p.tau(it), p)
+    if not np.isfinite(parts[0]):
+        raise GoiError(
+            f"fit-field diverged at iteration {it} (loss {parts[0]}): lower the learning rates"
+        )
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return parts
+
+
+def loss_line(curve: list[list[float]]) -> Callable[[object], str]:
+    def show(_: object) -> str:
+        if not curve:
+            return ""
+        return "loss {:.3f} (ent {:.3f} max {:.3f} joint {:.3f} e2e {:.3f})".format(*curve[-1])
+
+    return show
+
+
+@deterministic
+def fit_field(
+    scene: Scene,
+    features_path: Path,
+    codebook_path: Path,
+    p: FieldParams,
+    run: FieldRun,
+    report: Report = SILENT,
+) -> Path:
+    if run.distributed:  # the CLI calls fit_distributed.fit_field_distributed for it
+        raise GoiError("--distributed: a distributed fit runs fit_field_distributed")
+    # Everything is checked before the blend cache is built (minutes on a big scene).
+    s = prepare_fit(scene, features_path, codebook_path, p, run)
+    # one run per output: a second run of the same --out (or --cache) is refused here, before
+    # it reads, builds or removes anything of the first run's
+    with output_lock(run.out, "--out"), output_lock(s.cache_path, "--cache"):
+        return _fit(scene, features_path, codebook_path, p, run, s, report)
+
+
+def _fit(
+    scene: Scene,
+    features_path: Path,
+    codebook_path: Path,
+    p: FieldParams,
+    run: FieldRun,
+    s: FitSetup,
+    report: Report,
+) -> Path:
+    cache_path, train, views, sizes = s.cache_path, s.train, s.views, s.sizes
+    g = scene.gaussians
+    inputs = s.inputs
     if run.resume and run.checkpoint.is_file():
-        check_checkpoint(run.checkpoint, inputs, p.config(), shapes)
+        check_checkpoint(run.checkpoint, inputs, p.config(), s.shapes)
     budget = memory_budget(run.max_memory_gib)
-    need = working_set(g.count, scene, train, sizes, dim, codebook.shape[0], p)
+    need = working_set(g.count, scene, train, sizes, s.dim, s.codebook.shape[0], p)
     floor = cache_floor(cache_sizes(train, sizes), p.views_per_step)
     if need + floor > budget:
         raise GoiError(
@@ -186,16 +313,8 @@ def _fit(
     norms = {v: unit_norms(m.astype(np.float32)) for v, m in targets.items()}  # [cells]
 
     torch.manual_seed(p.seed)
-    model = FieldModel(g.count, p.sem_dim, codebook, p.no_tfcc, order=order)
-    opt = torch.optim.Adam(
-        [
-            {"params": [model.features], "lr": p.lr_features, "eps": 1e-15},
-            {"params": model.decoder.parameters(), "lr": p.lr_decoder},
-            {"params": [model.codebook], "lr": p.lr_codebook},
-        ],
-        # one pass over the [G, S] features and their two moments, not ten
-        fused=not p.reference_losses,
-    )
+    model = FieldModel(g.count, p.sem_dim, s.codebook, p.no_tfcc, order=order)
+    opt = make_optimizer(model, p)
     rng = np.random.default_rng(p.seed)
     curve: list[list[float]] = []
     start = 0
@@ -203,42 +322,17 @@ def _fit(
         start, curve = load_checkpoint(run.checkpoint, model, opt, rng, inputs, p.config())
         report.log(f"resuming {run.checkpoint} at iteration {start}")
 
-    def show(_: object) -> str:
-        if not curve:
-            return ""
-        return "loss {:.3f} (ent {:.3f} max {:.3f} joint {:.3f} e2e {:.3f})".format(*curve[-1])
-
     steps = range(start, p.iterations)
     t_fit = time.perf_counter()
-    for it in report.progress(steps, "fit-field", length=len(steps), show=show):
-        pick = rng.choice(len(views), min(p.views_per_step, len(views)), replace=False)
+    for it in report.progress(steps, "fit-field", length=len(steps), show=loss_line(curve)):
+        drawn = draw_cells(rng, views, sizes, p)
         if stream:  # same rows in the same order as in memory: the same field, bit for bit
             fr = FeatureRenderer.from_file(
-                cache_path, [views[i] for i in sorted(pick)], order=order, check=False
+                cache_path, [v for v, _ in drawn], order=order, check=False
             )
-        rows, tgt, tgt_norm = [], [], []
-        for vi in sorted(pick):
-            v = views[vi]
-            n_cells = sizes[v][0] * sizes[v][1]
-            if 0 < p.cells_per_view < n_cells:
-                cells = np.sort(rng.choice(n_cells, p.cells_per_view, replace=False))
-            else:
-                cells = np.arange(n_cells)
-            rows.append(fr.rows(v, cells))
-            tgt.append(targets[v][cells])
-            tgt_norm.append(norms[v][cells])
-        f_hat = fr.render(model.features, np.concatenate(rows), in_columns=True, buffers=buffers)
-        v_gt = torch.from_numpy(np.concatenate(tgt)).float()  # [B, D] unit, as load_features
-        v_gt.div_(torch.from_numpy(np.concatenate(tgt_norm))[:, None])  # would give them
-        loss, parts = field_losses(model, f_hat, v_gt, p.tau(it), p)
-        if not np.isfinite(parts[0]):
-            raise GoiError(
-                f"fit-field diverged at iteration {it} (loss {parts[0]}): lower the learning rates"
-            )
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        curve.append(parts)
+        rows = np.concatenate([fr.rows(v, cells) for v, cells in drawn])
+        f_hat = fr.render(model.features, rows, in_columns=True, buffers=buffers)
+        curve.append(take_step(model, opt, f_hat, step_targets(drawn, targets, norms), it, p))
         done = it + 1
         if run.checkpoint_every and done % run.checkpoint_every == 0 and done < p.iterations:
             save_checkpoint(run.checkpoint, model, opt, rng, done, curve, inputs, p.config())

@@ -58,18 +58,64 @@ def working_set(
     p: FieldParams,
 ) -> int:
     """Bytes a fit holds besides the blend cache's weights."""
-    cells = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
-    features = sum(w * h for w, h in cells.values()) * dim * 2  # float16
-    gaussians = scene.gaussians.vertex.nbytes * 3  # the PLY, its arrays, the rasteriser's
+    parts = _parts(scene, cameras, sizes, dim, entries, p)
+    return sum(parts.values()) + _optimiser(n_gaussians, p)
+
+
+def rank_working_set(
+    n_gaussians: int,
+    n_columns: int,
+    scene: Scene,
+    cameras: list[Camera],
+    sizes: dict[str, tuple[int, int]],
+    dim: int,
+    entries: int,
+    p: FieldParams,
+    leader: bool,
+    building: bool,
+    world: int,
+) -> int:
+    """Bytes one rank of a distributed fit holds besides its shard of the blend cache: the
+    feature maps (every rank reads them all), then the larger of two phases. While the
+    shards are `building`, the PLY and one view's rasterisation (rasterising a view needs
+    every Gaussian; the rank lets them go before fitting; with shards already built the PLY
+    is never read). Then its `n_columns` Gaussians' optimiser state, the step's batch and,
+    on the leader, the field's [G, S] features in PLY order and one other rank's share of
+    them at a time as it receives them."""
+    parts = _parts(scene, cameras, sizes, dim, entries, p, building)
+    build = parts["gaussians"] + parts["raster"] if building else 0
+    fit = _optimiser(n_columns, p) + parts["batch"]
+    if leader:
+        fit += n_gaussians * p.sem_dim * 4 + -(-n_gaussians // world) * (p.sem_dim + 1) * 4
+    return parts["features"] + max(build, fit)
+
+
+def _optimiser(n_gaussians: int, p: FieldParams) -> int:
     # features, gradient, Adam's two moments, the transpose's block buffers, and a copy of the
     # features in PLY order when the field is saved
-    optimiser = n_gaussians * p.sem_dim * 4 * (5 + T_BLOCKS)
+    return n_gaussians * p.sem_dim * 4 * (5 + T_BLOCKS)
+
+
+def _parts(
+    scene: Scene,
+    cameras: list[Camera],
+    sizes: dict[str, tuple[int, int]],
+    dim: int,
+    entries: int,
+    p: FieldParams,
+    gaussians: bool = True,
+) -> dict[str, int]:
+    cells = {c.name: sizes.get(c.name, (c.width, c.height)) for c in cameras}
     per_step = max(w * h for w, h in cells.values()) * p.views_per_step
     if p.cells_per_view:
         per_step = min(per_step, p.cells_per_view * p.views_per_step)
-    batch = per_step * (entries * 4 * 4 + dim * (2 + 4 + 4))
-    raster = max(c.width * c.height for c in cameras) * _ENTRIES_PER_PIXEL * _ENTRY_BYTES
-    return features + gaussians + optimiser + batch + raster
+    return {
+        "features": sum(w * h for w, h in cells.values()) * dim * 2,  # float16
+        # the PLY, its arrays, the rasteriser's (counted only when they are read)
+        "gaussians": scene.gaussians.vertex.nbytes * 3 if gaussians else 0,
+        "batch": per_step * (entries * 4 * 4 + dim * (2 + 4 + 4)),
+        "raster": max(c.width * c.height for c in cameras) * _ENTRIES_PER_PIXEL * _ENTRY_BYTES,
+    }
 
 
 def cache_floor(sizes: dict[str, tuple[int, int]], views_per_step: int) -> int:

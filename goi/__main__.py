@@ -1,0 +1,3 @@
+from goi_cli.main import entry
+
+entry()
