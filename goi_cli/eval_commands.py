@@ -17,8 +17,9 @@ from stages.evaluation.pipeline import EvalParams, EvalRun
 @click.option(
     "--features",
     type=click.Path(path_type=Path),
-    required=True,
-    help="Directory of per-view feature files for the training views (<view>.npy or .pt).",
+    default=None,
+    help="Directory of per-view feature files for the training views (<view>.npy or .pt); "
+    "needed by every variant but lifted_fieldless.",
 )
 @click.option(
     "--res-masks",
@@ -28,9 +29,10 @@ from stages.evaluation.pipeline import EvalParams, EvalRun
 )
 @dataclass_options(EvalRun)
 @dataclass_options(EvalParams)
-def eval_cmd(room: Path, features: Path, res_masks: Path | None, **kw) -> None:
+def eval_cmd(room: Path, features: Path | None, res_masks: Path | None, **kw) -> None:
     """Run the whole pipeline on a benchmark ROOM (layout: a room README) and score the masks on
-    its TEST views with the paper's metrics, for the four ablation variants. The RES masks are
+    its TEST views with the paper's metrics, for the four ablation variants and goi's lifted
+    modes (lifted, with the field; lifted_fieldless, from the RES masks alone). The RES masks are
     files (--res-masks) or made by a bundle's RES model (--bundle)."""
     from stages.evaluation.pipeline import run_eval
 

@@ -25,6 +25,14 @@ from stages.query.pipeline import PromptSources, QueryParams, QueryRun
 field_option = click.option(
     "--field", type=EXISTING, required=True, help="Field artifact (goi fit-field)."
 )
+#: query / select / render-mask: with --lift and a RES source the field is optional.
+field_or_lift_option = click.option(
+    "--field",
+    type=EXISTING,
+    help="Field artifact (goi fit-field). Optional with --lift and a RES source (--res-masks "
+    "or a bundle's RES): then the RES masks alone decide (field-free lifted mode) and the "
+    "Gaussians no view's evidence reaches stay out.",
+)
 prompt_option = click.option("--prompt", required=True, help="The text query.")
 hyperplanes_option = click.option(
     "--hyperplanes", type=EXISTING, required=True, help="Hyperplanes artifact (fit-hyperplane)."
@@ -40,22 +48,42 @@ source_options = dataclass_options(PromptSources)
 lift_options = dataclass_options(LiftParams)
 
 
-def _lifted_answer(scene, field: Path, prompt: str, kw: dict):  # noqa: ANN001, ANN202
-    """The lifted answer of a prompt for select / render-mask / fit-hyperplane --lift."""
+def _lifted_answer(scene, field: Path | None, prompt: str, kw: dict):  # noqa: ANN001, ANN202
+    """The lifted answer of a prompt for select / render-mask / fit-hyperplane --lift, and the
+    rasterizer it was made with; field None is the field-free lifted mode."""
     from stages.query.lifted_query import answer_prompt
+    from stages.query.pipeline import check_field_free
     from stages.query.prompts import check_prompt, text_embedding
     from stages.query.res import res_source
+    from stages.render.rasterizer import Rasterizer
     from stages.semantics.decode import SemanticRenderer
     from stages.semantics.field import load_field_for
 
     src, lp = build(PromptSources, kw), build(LiftParams, kw)
     hp = build(HyperplaneParams, kw) if "loss" in kw else HyperplaneParams()
     prompt = check_prompt(prompt)
+    if field is None:
+        check_field_free(lp, src)
+        rast = Rasterizer.from_gaussians(scene.gaussians)
+        masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, rast)
+        return answer_prompt(scene, rast, prompt, None, masks, hp, lp, TERMINAL), rast, lp
     f = load_field_for(field, scene.ply_digest())
     text, _ = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
-    masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer)
-    return answer_prompt(scene, renderer, prompt, text, masks, hp, lp, TERMINAL), renderer, lp
+    masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast)
+    ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, TERMINAL)
+    return ans, renderer.rast, lp
+
+
+def _need_field(field: Path | None) -> Path:
+    from stages.core.errors import GoiError
+
+    if field is None:
+        raise GoiError(
+            "--field is needed (or --lift with --res-masks or a bundle's RES: the field-free "
+            "lifted mode)"
+        )
+    return field
 
 
 def _source_paths(kw: dict) -> list[Path | None]:
@@ -105,6 +133,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
         run = build(HyperplaneRun, kw)
         refuse_inputs({"--out": run.out}, [field, *_source_paths(kw), *_scene_files(scene)])
         ans, _, lp = _lifted_answer(scene, field, prompt, kw)
+        assert ans.plane is not None  # a field took part
         with staged_outputs():
             add_plane(run.out, ans.plane, field, {**ans.record(lp), "mode": "lifted"})
         n = int(ans.plane.positive.sum())
@@ -122,7 +151,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     f = load_field_for(field, scene.ply_digest())
     text, text_source = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
-    masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer)
+    masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast)
     with staged_outputs():  # the plane and the RES masks it was fitted on, or neither
         train = scene.views("train")
         plane, cached = fit_hyperplane(
@@ -137,7 +166,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 
 @click.command("render-mask")
 @scene_options
-@field_option
+@field_or_lift_option
 @prompt_option
 @plane_or_lift_option
 @source_options
@@ -150,7 +179,9 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 )
 @dataclass_options(MaskRun)
 @dataclass_options(MaskParams)
-def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_file, **kw) -> None:  # noqa: ANN001
+def render_mask_cmd(
+    field: Path | None, prompt: str, hyperplanes: Path | None, camera_file, **kw
+) -> None:  # noqa: ANN001
     """Render the prompt's binary mask (PNG) and an overlay on the rendered RGB at any views.
     With --lift the mask is the 3D selection lifted from RES masks, seen from the view (a pixel
     is in when the selected Gaussians carry more than half of its blend weight)."""
@@ -172,15 +203,16 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_f
     if kw["lift"]:
         from stages.query.lifted_query import write_masks
 
-        ans, renderer, _ = _lifted_answer(scene, field, prompt, kw)
+        ans, rast, _ = _lifted_answer(scene, field, prompt, kw)
         with staged_outputs():
             written = write_masks(
-                renderer, ans.selected, chosen, run.out, not run.no_overlay, run.force, TERMINAL
+                rast, ans.selected, chosen, run.out, not run.no_overlay, run.force, TERMINAL
             )
         click.echo(f"masks ({len(written)} views, lifted from {len(ans.views)} views): {run.out}")
         return
     build(PromptSources, kw)
     build(LiftParams, kw).check()
+    field = _need_field(field)
     f = load_field_for(field, scene.ply_digest())
     n_entries, dim = f.codebook.shape
     plane = load_plane(_need_plane(hyperplanes), prompt, field, n_entries, dim)
@@ -192,7 +224,7 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_f
 
 @click.command("select")
 @scene_options
-@field_option
+@field_or_lift_option
 @prompt_option
 @plane_or_lift_option
 @source_options
@@ -207,7 +239,13 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_f
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Selection artifact.")
 @click.option("--force", is_flag=True, help="Overwrite an existing output.")
 def select_cmd(
-    field: Path, prompt: str, hyperplanes: Path | None, mode: str, out: Path, force: bool, **kw
+    field: Path | None,
+    prompt: str,
+    hyperplanes: Path | None,
+    mode: str,
+    out: Path,
+    force: bool,
+    **kw,
 ) -> None:
     """Select the 3D Gaussians of interest: those whose decoded feature is on the plane's
     positive side (with --lift: the RES masks of many views lifted onto the Gaussians and
@@ -227,7 +265,7 @@ def select_cmd(
         from stages.query.lifted_query import write_lifted_selection
 
         ans, _, lp = _lifted_answer(scene, field, prompt, kw)
-        write_lifted_selection(out, ans, scene, field, lp, force)
+        write_lifted_selection(out, ans, scene, field, lp, force, prompt)
         click.echo(
             f"selection (lifted from {len(ans.views)} views, {int(ans.selected.sum())} of "
             f"{ans.selected.size} Gaussians): {out}"
@@ -236,12 +274,13 @@ def select_cmd(
     build(PromptSources, kw)
     build(LiftParams, kw).check()
     hyperplanes = _need_plane(hyperplanes)
+    field = _need_field(field)
     f = load_field_for(field, scene.ply_digest())
     n_entries, dim = f.codebook.shape
     plane = plane_for(load_plane(hyperplanes, prompt, field, n_entries, dim), mode, f, THRESHOLD)
     sel = select(f, plane)
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field)}
-    write_selection(out, sel, plane, mode, scene.ply_digest(), inputs, force)
+    write_selection(out, sel, plane.prompt, mode, scene.ply_digest(), inputs, force)
     click.echo(f"selection ({int(sel.sum())} of {sel.size} Gaussians): {out}")
 
 
@@ -271,14 +310,14 @@ def export_ply_cmd(selection: Path, field: Path | None, **kw) -> None:
 
 @click.command("query")
 @scene_options
-@field_option
+@field_or_lift_option
 @prompt_option
 @source_options
 @dataclass_options(QueryRun)
 @dataclass_options(QueryParams)
 @dataclass_options(HyperplaneParams)
 @lift_options
-def query_cmd(field: Path, prompt: str, **kw) -> None:
+def query_cmd(field: Path | None, prompt: str, **kw) -> None:
     """Query the scene with a text prompt: fit the hyperplane unless cached, render masks,
     select the Gaussians of interest and export them as a PLY. Prints where everything went."""
     from stages.query.pipeline import run_query

@@ -42,8 +42,10 @@ from stages.evaluation.variants import (
     FIELD_KIND,
     VARIANTS,
     DirectModel,
+    FieldFreeModel,
     Prediction,
     TfccModel,
+    VisibilityCache,
     render_direct,
 )
 from stages.models.bundle import Bundle, load_bundle
@@ -137,15 +139,20 @@ def _chosen_variants(text: str) -> list[str]:
 
 def _fit_models(
     room: Room,
-    features: Path,
+    features: Path | None,
     work: Path,
     variants: list[str],
     p: EvalParams,
     timer: _Timer,
     report: Report,
 ) -> tuple[TfccModel | None, DirectModel | None]:
-    """Features, codebook and the fields the variants need, with their test views rendered."""
+    """Features, codebook and the fields the variants need, with their test views rendered
+    (nothing when only field-free variants run)."""
     scene = room.scene
+    kinds = {FIELD_KIND[v] for v in variants} - {"none"}
+    if not kinds:
+        return None, None
+    assert features is not None  # run_eval asks for it when a variant needs a field
     feats, cb = work / "features.h5", work / "codebook.h5"
     with timer("extract"):
         files = feature_files(scene, features, "train")
@@ -158,7 +165,6 @@ def _fit_models(
         same = {"n_entries": cp.entries, "seed": cp.seed}
         if not _reusable(cb, "goi.codebook", input_digest("features", feats), report, same):
             init_codebook(feats, cp, CodebookRun(cb, force=True), report)
-    kinds = {FIELD_KIND[v] for v in variants}
     fitted = {}
     for kind in ("tfcc", "direct"):
         if kind not in kinds:
@@ -186,7 +192,9 @@ def _fit_models(
             field = load_field(fitted["tfcc"])
             renderer = SemanticRenderer(scene.gaussians, field)
             views = {c.name: renderer.render(c, with_rgb=True) for c in test}
-            tfcc = TfccModel(field, fitted["tfcc"], renderer, views, {c.name: c for c in test})
+            cams = {c.name: c for c in test}
+            vis = VisibilityCache(renderer.rast)
+            tfcc = TfccModel(field, fitted["tfcc"], renderer, views, cams, vis)
         if "direct" in fitted:
             field = load_field(fitted["direct"])
             renderer = SemanticRenderer(scene.gaussians, field)
@@ -213,7 +221,7 @@ def _res_bundle(res: Path | None, bundle: Path | None) -> Bundle | None:
 
 
 def _res_figures(
-    sources: dict[str, ResSource], doc: dict, renderer: SemanticRenderer, scene: Scene
+    sources: dict[str, ResSource], doc: dict, rast: Rasterizer, scene: Scene
 ) -> dict[str, tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]]:
     """For the page: each prompt's RES masks that a model made and a fit used, with the
     rendering the model ran on. {prompt id: (source, {view: (rgb, mask)})}."""
@@ -226,7 +234,7 @@ def _res_figures(
             used.update(dict.fromkeys(v["prompts"][pid].get("fit_views", [])))
         figs = {}
         for view in used:
-            rgb = renderer.rast.render_rgb(scene.camera(view)).image
+            rgb = rast.render_rgb(scene.camera(view)).image
             figs[view] = ((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), source.computed[view])
         if figs:
             out[pid] = (source.source, figs)
@@ -379,14 +387,15 @@ def _check_entries(p: EvalParams, files: dict[str, Path]) -> None:
 
 def run_eval(
     room_dir: Path,
-    features: Path,
+    features: Path | None,
     res: Path | None,
     p: EvalParams,
     run: EvalRun,
     report: Report = SILENT,
 ) -> EvalResult:
     """Run every variant on the room and write report.json (and the HTML page). The RES masks
-    are the files under `res`, or made by `run.bundle`'s RES."""
+    are the files under `res`, or made by `run.bundle`'s RES. `features` may be None when only
+    field-free variants run."""
     check_params(p)
     variants = _chosen_variants(run.variants)
     room = load_room(Path(room_dir), run.text_embeddings)
@@ -401,16 +410,26 @@ def run_eval(
     sources: dict[str, ResSource] = {}
     if res is not None:
         sources = {p.id: ResFiles(Path(res), p.id, p.text) for p in room.prompts}
-    files = feature_files(room.scene, Path(features), "train", "--features")
-    first = next(iter(files.values()))
-    dim = load_feature_file(first).shape[0]
-    text_dim = next(iter(room.embeddings.values())).size
-    if dim != text_dim:
+    files: dict[str, Path] = {}
+    with_field = [v for v in variants if FIELD_KIND[v] != "none"]
+    if with_field and features is None:
         raise GoiError(
-            f"{first}: the features have {dim} dimensions but the prompts' text embeddings "
-            f"({room.embeddings_path}) {text_dim}; image and text features must share one space"
+            f"--features: needed by {', '.join(with_field)} (they fit a field); without it "
+            "only --variants lifted_fieldless runs"
         )
-    _check_entries(p, files)
+    if with_field:
+        assert features is not None
+        files = feature_files(room.scene, Path(features), "train", "--features")
+        first = next(iter(files.values()))
+        dim = load_feature_file(first).shape[0]
+        text_dim = next(iter(room.embeddings.values())).size
+        if dim != text_dim:
+            raise GoiError(
+                f"{first}: the features have {dim} dimensions but the prompts' text embeddings "
+                f"({room.embeddings_path}) {text_dim}; image and text features must share one "
+                "space"
+            )
+        _check_entries(p, files)
     work = Path(run.work or Path(run.out).with_suffix(".work"))
     scene = room.scene
     inputs = [
@@ -438,10 +457,15 @@ def run_eval(
         f"eval: room {room.dir} ({scene.gaussians.count} Gaussians, {len(room.prompts)} prompts)"
     )
     tfcc, direct = _fit_models(room, features, work, variants, p, timer, report)
-    fitted = tfcc or direct
-    assert fitted is not None
+    # one rasterizer and one visibility cache for every lifted variant
+    if tfcc is not None:
+        rast, vis = tfcc.renderer.rast, tfcc.visibility
+    else:
+        rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(scene.gaussians)
+        vis = VisibilityCache(rast)
+    free = FieldFreeModel(rast, {c.name: c for c in scene.views("test")}, vis)
     if bundle is not None:  # one bundle, its sessions shared by every prompt
-        sources = {p.id: ResModel(bundle, p.text, fitted.renderer) for p in room.prompts}
+        sources = {p.id: ResModel(bundle, p.text, rast) for p in room.prompts}
     with timer("contribution_3d"):
         weight = _visibility(room) if room.gaussian_ids is not None else None
     test = {c.name for c in scene.views("test")}
@@ -475,7 +499,7 @@ def run_eval(
                     "params": lp.config(),
                 }
             }
-            if "lifted" in variants
+            if "lifted" in variants or "lifted_fieldless" in variants
             else {}
         ),
         "timings_s": timer.t,
@@ -488,7 +512,9 @@ def run_eval(
         gts = {v: room.ground_truth(prompt, v) for v in views}
         for variant in variants:
             t0 = time.perf_counter()
-            if variant == "lifted":
+            if variant == "lifted_fieldless":
+                pred = free.predict(prompt.text, source, train, hp, lp, views)
+            elif variant == "lifted":
                 assert tfcc is not None
                 pred = tfcc.predict_lifted(prompt.text, text, source, train, hp, lp, views)
             elif FIELD_KIND[variant] == "tfcc":
@@ -513,7 +539,7 @@ def run_eval(
         if run.html is not None:
             with timer("html"):  # doc["timings_s"] is timer.t: the page's own time lands too
                 views_rgb = tfcc.views if tfcc is not None else {}
-                res_figs = _res_figures(sources, doc, fitted.renderer, scene)
+                res_figs = _res_figures(sources, doc, rast, scene)
                 eval_page(Path(run.html), doc, room.prompts, figures, views_rgb, scene, res_figs)
         validate_json(doc, "goi.eval", str(run.out))  # what we write, our reader must accept
         write_json(run.out, doc, force=True)

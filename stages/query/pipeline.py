@@ -15,6 +15,7 @@ from typing import Annotated
 import numpy as np
 
 from stages.core.artifacts import input_digest
+from stages.core.errors import GoiError
 from stages.core.files import check_output_file, make_dir, refuse_inputs
 from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
@@ -33,6 +34,7 @@ from stages.query.osh import HyperplaneParams, threshold_plane
 from stages.query.prompts import check_prompt, safe_name, text_embedding
 from stages.query.res import res_source
 from stages.query.selection import Selection, select, write_selection
+from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 from stages.semantics.decode import SemanticRenderer
@@ -94,7 +96,7 @@ class QueryResult:
 
 def _check_outputs(
     scene: Scene,
-    field_path: Path,
+    field_path: Path | None,
     prompt: str,
     sources: PromptSources,
     run: QueryRun,
@@ -122,7 +124,7 @@ def _check_outputs(
 
 def run_query(
     scene: Scene,
-    field_path: Path,
+    field_path: Path | None,
     prompt: str,
     sources: PromptSources,
     hp: HyperplaneParams,
@@ -132,11 +134,22 @@ def run_query(
     report: Report = SILENT,
     lp: LiftParams | None = None,
 ) -> QueryResult:
+    """The query of one prompt. field_path None (with --lift) is the field-free lifted mode."""
     prompt = check_prompt(prompt)
     lp = lp or LiftParams()
     for params in (hp, qp, run, lp):
         check_params(params)
     lp.check()
+    if field_path is None and renderer is None:
+        check_field_free(lp, sources)
+        rast = Rasterizer.from_gaussians(scene.gaussians)
+        cams = default_cameras(scene, run.views)
+        if run.export == "highlight":
+            parse_color(run.color, "--color")
+        _check_outputs(scene, None, prompt, sources, run, cams)
+        make_dir(run.out, "--out")
+        return _run_lifted(scene, None, prompt, None, sources, hp, lp, run, cams, rast, report)
+    assert field_path is not None
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
     text, text_source = text_embedding(
@@ -153,7 +166,9 @@ def run_query(
         )
     res_dir = None
     if qp.mode == "hyperplane":
-        masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
+        masks = res_source(
+            sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer.rast
+        )
         plane, cached = fit_hyperplane(
             renderer,
             field_path,
@@ -178,7 +193,7 @@ def run_query(
     sel = select(field, plane)
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field_path)}
     sel_path = write_selection(
-        pdir / "selection.h5", sel, plane, qp.mode, scene.ply_digest(), inputs, force=True
+        pdir / "selection.h5", sel, plane.prompt, qp.mode, scene.ply_digest(), inputs, force=True
     )
     ply = _export(scene, sel, prompt, qp.mode, run, pdir)
     n = int(sel.sum())
@@ -186,27 +201,45 @@ def run_query(
     return QueryResult(prompt, pdir, cached, masks_written, sel_path, ply, n, info, res_dir)
 
 
+def check_field_free(lp: LiftParams, sources: PromptSources) -> None:
+    """Without --field only the lifted mode answers, from a RES source."""
+    if not lp.lift:
+        raise GoiError(
+            "--field is needed (or --lift with --res-masks or a bundle's RES: the field-free "
+            "lifted mode)"
+        )
+    if sources.res_masks is None and sources.bundle is None:
+        raise GoiError(
+            "--lift without --field answers from RES masks alone: give --res-masks DIR or "
+            "--bundle DIR (a bundle with a RES)"
+        )
+
+
 def _run_lifted(
     scene: Scene,
-    field_path: Path,
+    field_path: Path | None,
     prompt: str,
-    text: np.ndarray,
+    text: np.ndarray | None,
     sources: PromptSources,
     hp: HyperplaneParams,
     lp: LiftParams,
     run: QueryRun,
     cams: list[Camera],
-    renderer: SemanticRenderer,
+    renderer: SemanticRenderer | Rasterizer,
     report: Report,
 ) -> QueryResult:
-    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lifted)."""
+    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lifted);
+    a bare Rasterizer (no field) gives the field-free answer."""
     from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
 
-    masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
+    rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
+    masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, rast)
     ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, report)
     pdir = Path(run.out) / safe_name(prompt)
-    written = write_masks(renderer, ans.selected, cams, pdir / "masks", True, True, report)
-    sel_path = write_lifted_selection(pdir / "selection.h5", ans, scene, field_path, lp, True)
+    written = write_masks(rast, ans.selected, cams, pdir / "masks", True, True, report)
+    sel_path = write_lifted_selection(
+        pdir / "selection.h5", ans, scene, field_path, lp, True, prompt
+    )
     ply = _export(scene, ans.selected, prompt, "lifted", run, pdir)
     info = {"views": ans.views, "chosen_by": ans.chosen_by}
     return QueryResult(prompt, pdir, False, written, sel_path, ply, int(ans.selected.sum()), info)

@@ -20,13 +20,15 @@ from stages.core.files import make_dir
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import check_plain_name, safe_name, view_file_name
+from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
-from stages.semantics.decode import SemanticRenderer
 
 
 class ResFiles:
     """RES masks made by any external tool: DIR/<view>.png (a prompt's own directory)."""
+
+    every_view = True  # a file costs nothing: the lifted mode lifts them all by default
 
     def __init__(self, root: Path, prompt_id: str | None, prompt: str):
         root = Path(root)
@@ -78,7 +80,9 @@ class ResModel:
     pipeline), run on the RGB goi renders at each view. Each view's mask is computed once;
     `computed` keeps them, so the masks a fit used can be written beside its outputs."""
 
-    def __init__(self, bundle_dir: Path | Bundle, prompt: str, renderer: SemanticRenderer):
+    every_view = False  # seconds per view: the lifted mode chooses K views
+
+    def __init__(self, bundle_dir: Path | Bundle, prompt: str, rast: Rasterizer):
         # a loaded Bundle lets several prompts share one set of sessions (goi eval)
         self.bundle = bundle_dir if isinstance(bundle_dir, Bundle) else load_bundle(bundle_dir)
         if not self.bundle.has_res:
@@ -87,7 +91,7 @@ class ResModel:
                 "DIR instead"
             )
         self.prompt = prompt
-        self.renderer = renderer
+        self.rast = rast
         self.source = f"bundle:{self.bundle.name}"
         self.computed: dict[str, np.ndarray] = {}
 
@@ -97,7 +101,7 @@ class ResModel:
     def mask(self, cam: Camera) -> np.ndarray:
         if cam.name not in self.computed:
             self.bundle.check_res()  # every model opened and checked before any work
-            rgb = self.renderer.rast.render_rgb(cam).image
+            rgb = self.rast.render_rgb(cam).image
             rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
             self.computed[cam.name] = self.bundle.segment(rgb8, self.prompt)
         return self.computed[cam.name]
@@ -130,13 +134,14 @@ def res_source(
     bundle: Path | None,
     prompt_id: str | None,
     prompt: str,
-    renderer: SemanticRenderer,
+    rast: Rasterizer,
 ) -> ResSource:
-    """Mask files when given, else the bundle's RES model; one of them is needed."""
+    """Mask files when given, else the bundle's RES model (run on rast's renderings); one of
+    them is needed."""
     if res_masks is not None:
         return ResFiles(res_masks, prompt_id, prompt)
     if bundle is not None:
-        return ResModel(bundle, prompt, renderer)
+        return ResModel(bundle, prompt, rast)
     raise GoiError(
         "fitting a hyperplane needs RES masks: --res-masks DIR, or --bundle DIR with a RES "
         "(res or grounded; or use --mode threshold where there is one)"
