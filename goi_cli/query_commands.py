@@ -65,12 +65,16 @@ def _lifted_answer(scene, field: Path | None, prompt: str, kw: dict):  # noqa: A
     if field is None:
         check_field_free(lp, src)
         rast = Rasterizer.from_gaussians(scene.gaussians)
-        masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, rast)
+        masks = res_source(
+            src.res_masks, src.bundle, src.prompt_id, prompt, rast, src.res_index, scene
+        )
         return answer_prompt(scene, rast, prompt, None, masks, hp, lp, TERMINAL), rast, lp
     f = load_field_for(field, scene.ply_digest())
     text, _ = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
-    masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast)
+    masks = res_source(
+        src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast, src.res_index, scene
+    )
     ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, TERMINAL)
     return ans, renderer.rast, lp
 
@@ -88,7 +92,7 @@ def _need_field(field: Path | None) -> Path:
 
 def _source_paths(kw: dict) -> list[Path | None]:
     """The prompt's input files (embeddings, bundle, RES masks): never an output."""
-    return [kw.get("text_embeddings"), kw.get("bundle"), kw.get("res_masks")]
+    return [kw.get("text_embeddings"), kw.get("bundle"), kw.get("res_masks"), kw.get("res_index")]
 
 
 def _scene_files(scene) -> list[Path]:  # noqa: ANN001
@@ -146,12 +150,14 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     src = build(PromptSources, kw)
     p, run = build(HyperplaneParams, kw), build(HyperplaneRun, kw)
     prompt = check_prompt(prompt)
-    inputs = [field, src.text_embeddings, src.bundle, src.res_masks, scene.ply_path]
+    inputs = [field, src.text_embeddings, src.bundle, src.res_masks, src.res_index, scene.ply_path]
     refuse_inputs({"--out": run.out}, [*inputs, *scene.camera_files])
     f = load_field_for(field, scene.ply_digest())
     text, text_source = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
-    masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast)
+    masks = res_source(
+        src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast, src.res_index, scene
+    )
     with staged_outputs():  # the plane and the RES masks it was fitted on, or neither
         train = scene.views("train")
         plane, cached = fit_hyperplane(

@@ -52,7 +52,7 @@ from stages.models.bundle import Bundle, load_bundle
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.lifting import LiftParams
 from stages.query.osh import THRESHOLD, HyperplaneParams
-from stages.query.res import ResFiles, ResModel, ResSource
+from stages.query.res import ResFiles, ResIndexed, ResModel, ResSource, checked_index
 from stages.render.rasterizer import Rasterizer
 from stages.scene.scene import Scene
 from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
@@ -100,6 +100,9 @@ class EvalRun:
     bundle: Path | None = None
     """Model bundle whose RES (docs/models.md) makes the RES masks on goi's rendering of the
     training views, instead of --res-masks; the HTML page shows the masks the fits used."""
+    res_index: Path | None = None
+    """With --bundle: the room's RES index (goi index-res) made with it; only the bundle's
+    prompt side runs, on the room's photos, and lifted variants lift every indexed view."""
     variants: str = ",".join(VARIANTS)
     """Comma-separated variants to run (lifted is goi's added mode, the others the paper's)."""
     force: bool = False
@@ -227,15 +230,19 @@ def _res_figures(
     rendering the model ran on. {prompt id: (source, {view: (rgb, mask)})}."""
     out = {}
     for pid, source in sources.items():
-        if not isinstance(source, ResModel):
+        if not isinstance(source, ResModel | ResIndexed):
             continue
         used: dict[str, None] = {}  # ordered set over the variants that fitted
         for v in doc["variants"].values():
             used.update(dict.fromkeys(v["prompts"][pid].get("fit_views", [])))
         figs = {}
         for view in used:
-            rgb = rast.render_rgb(scene.camera(view)).image
-            figs[view] = ((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), source.computed[view])
+            if isinstance(source, ResIndexed):  # an index ran on the photos
+                rgb8 = scene.load_image(scene.camera(view))
+            else:
+                rgb = rast.render_rgb(scene.camera(view)).image
+                rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+            figs[view] = (rgb8, source.computed[view])
         if figs:
             out[pid] = (source.source, figs)
     return out
@@ -409,7 +416,12 @@ def run_eval(
     bundle = _res_bundle(res, run.bundle)
     sources: dict[str, ResSource] = {}
     if res is not None:
+        if run.res_index is not None:
+            raise GoiError("give one of --res-masks DIR or --res-index FILE (with --bundle)")
         sources = {p.id: ResFiles(Path(res), p.id, p.text) for p in room.prompts}
+    if run.res_index is not None:
+        index, ib = checked_index(Path(run.res_index), bundle, room.scene)
+        sources = {p.id: ResIndexed(index, ib, p.text, room.scene) for p in room.prompts}
     files: dict[str, Path] = {}
     with_field = [v for v in variants if FIELD_KIND[v] != "none"]
     if with_field and features is None:
@@ -444,6 +456,7 @@ def run_eval(
         *files.values(),
         Path(res) if res is not None else None,
         run.bundle,
+        run.res_index,
     ]
     outputs = {
         "--out": run.out,
@@ -464,7 +477,7 @@ def run_eval(
         rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(scene.gaussians)
         vis = VisibilityCache(rast)
     free = FieldFreeModel(rast, {c.name: c for c in scene.views("test")}, vis)
-    if bundle is not None:  # one bundle, its sessions shared by every prompt
+    if bundle is not None and not sources:  # one bundle, its sessions shared by every prompt
         sources = {p.id: ResModel(bundle, p.text, rast) for p in room.prompts}
     with timer("contribution_3d"):
         weight = _visibility(room) if room.gaussian_ids is not None else None

@@ -196,7 +196,8 @@ def lift_prompt(
             for c in report.progress(pool, "lift", show=_name)
         ]
         everything = "all mask files" if files else f"every indexed view ({source.source})"
-        return _answer(evidence, field, entry, prompt, text, hp, lp, everything)
+        lifted_all = _answer(evidence, field, entry, prompt, text, hp, lp, everything)
+        return _found_nothing(lifted_all, source, prompt)
     k = lp.res_views or DEFAULT_MODEL_VIEWS
     if k > len(pool):
         warn(f"--res-views {k}: only {len(pool)} views have RES masks; lifting all of them")
@@ -224,6 +225,19 @@ def lift_prompt(
         if answer.selected.any():
             S = answer.selected
     assert answer is not None  # k >= 1
+    return _found_nothing(answer, source, prompt)
+
+
+def _found_nothing(answer: LiftedAnswer, source: MaskSource, prompt: str) -> LiftedAnswer:
+    """When every view's RES mask is empty (the detector found nothing anywhere), the answer is
+    empty, with a warning: not an error, and not the field's guess from the text alone."""
+    if any(not e.empty for e in answer.evidence):
+        return answer
+    warn(
+        f"{source.source}: the RES found nothing for '{prompt}' on any of the "
+        f"{len(answer.evidence)} views; the answer is empty"
+    )
+    answer.lifted.selected = np.zeros_like(answer.lifted.selected)
     return answer
 
 

@@ -58,6 +58,10 @@ class PromptSources:
     (default subdirectory: the prompt's safe name)."""
     prompt_id: str | None = None
     """Subdirectory of --res-masks holding this prompt's masks."""
+    res_index: Path | None = None
+    """RES index of the scene (goi index-res) made with --bundle: only the bundle's prompt
+    side runs (seconds for every training view), on the scene's photos; --lift then lifts
+    every indexed view by default."""
 
 
 @dataclass
@@ -111,6 +115,7 @@ def _check_outputs(
         sources.text_embeddings,
         sources.bundle,
         sources.res_masks,
+        sources.res_index,
     ]
     pdir = Path(run.out) / safe_name(prompt)
     check_mask_outputs(pdir / "masks", cams, True, True, inputs)
@@ -167,7 +172,13 @@ def run_query(
     res_dir = None
     if qp.mode == "hyperplane":
         masks = res_source(
-            sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer.rast
+            sources.res_masks,
+            sources.bundle,
+            sources.prompt_id,
+            prompt,
+            renderer.rast,
+            sources.res_index,
+            scene,
         )
         plane, cached = fit_hyperplane(
             renderer,
@@ -210,8 +221,8 @@ def check_field_free(lp: LiftParams, sources: PromptSources) -> None:
         )
     if sources.res_masks is None and sources.bundle is None:
         raise GoiError(
-            "--lift without --field answers from RES masks alone: give --res-masks DIR or "
-            "--bundle DIR (a bundle with a RES)"
+            "--lift without --field answers from RES masks alone: give --res-masks DIR, "
+            "--bundle DIR (a bundle with a RES) or --res-index FILE with its --bundle"
         )
 
 
@@ -233,7 +244,9 @@ def _run_lifted(
     from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
 
     rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
-    masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, rast)
+    masks = res_source(
+        sources.res_masks, sources.bundle, sources.prompt_id, prompt, rast, sources.res_index, scene
+    )
     ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, report)
     pdir = Path(run.out) / safe_name(prompt)
     written = write_masks(rast, ans.selected, cams, pdir / "masks", True, True, report)
