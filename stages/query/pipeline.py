@@ -219,6 +219,11 @@ def check_field_free(lp: LiftParams, sources: PromptSources) -> None:
             "--field is needed (or --lift with --res-masks or a bundle's RES: the field-free "
             "lifted mode)"
         )
+    if sources.res_index is not None and sources.bundle is None:
+        raise GoiError(
+            "--res-index needs --bundle DIR: the bundle the index was made with runs the "
+            "prompt side"
+        )
     if sources.res_masks is None and sources.bundle is None:
         raise GoiError(
             "--lift without --field answers from RES masks alone: give --res-masks DIR, "

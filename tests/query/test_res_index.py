@@ -79,7 +79,7 @@ def test_a_cut_off_index_resumes_and_bad_indexes_are_refused(
     photographed, res_bundles, tmp_path, capsys
 ):
     s, root = photographed
-    bundle = res_bundles["clipseg"]
+    bundle = res_bundles["grounded"]
     idx = tmp_path / "index.h5"
     assert _index(s, bundle, idx) == 0
     full = load_res_index(idx)
@@ -111,8 +111,12 @@ def test_a_cut_off_index_resumes_and_bad_indexes_are_refused(
         assert match in err and len(err.strip().splitlines()) == 1, err
         assert not (tmp_path / "q").exists()
 
-    # another bundle
-    refused("--res-index", str(idx), "--bundle", str(res_bundles["grounded"]),
+    # another bundle (the same models under another name: another digest)
+    other_bundle = tmp_path / "other_bundle"
+    shutil.copytree(bundle, other_bundle)
+    manifest = json.loads((other_bundle / "manifest.json").read_text())
+    (other_bundle / "manifest.json").write_text(json.dumps({**manifest, "name": "other"}))
+    refused("--res-index", str(idx), "--bundle", str(other_bundle),
             match="was made with bundle")  # fmt: skip
     # no bundle
     refused("--res-index", str(idx), match="--res-index needs --bundle")
