@@ -3,8 +3,9 @@
     python benchmarks/run.py --suite raster [--json OUT] [--repeat 5]
 
 Suites: raster, pooled (the pooled blend cache at 3M Gaussians), field, query (goi's own
-stages) and models (the RES models at their real size, random weights, exported and timed in
-onnxruntime; benchmarks/models.py).
+stages), models (the RES models at their real size, random weights, exported and timed in
+onnxruntime; benchmarks/models.py) and index (prompts from a per-scene RES index on the dev
+room against the whole RES per view and against the paper's route; benchmarks/index.py).
 
 Figures are measured, never asserted: tests check behaviour, this checks speed.
 """
@@ -386,6 +387,12 @@ def suite_models(repeat: int, tmp: Path) -> dict[str, float]:
     return models(repeat, tmp, median_s)
 
 
+def suite_index(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.index import suite_index as index
+
+    return index(repeat, tmp, median_s)
+
+
 def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, float]:  # noqa: ANN001
     """The lifted mode: one view's mask lifted (projection, binning and the tile walk), and a
     prompt with K = 8 mask files given (lifting all 8, fusion, the OSH on the evidence, and the
@@ -428,6 +435,7 @@ SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "losses": suite_losses,
     "scale": suite_scale,
     "models": suite_models,
+    "index": suite_index,
 }
 
 

@@ -144,3 +144,29 @@ def test_a_cut_off_index_resumes_and_bad_indexes_are_refused(
     q[2] = str(s["scene"])
     refused("--res-index", str(renamed), "--bundle", str(bundle), match="another scene")
     assert json.loads(h5py.File(idx)["/"].attrs["inputs"])["bundle"] == full.bundle_sha256
+
+
+def test_eval_from_an_index(res_bundles, tmp_path):
+    """goi eval --res-index: the lifted variants lift every indexed view; a view's masks come
+    from the index (on the room's photos)."""
+    from tests.evaluation.test_eval import make_room
+
+    s, room = make_room(tmp_path)
+    rast = Rasterizer.from_gaussians(load_ply(room / "point_cloud.ply"))
+    (room / "images").mkdir()
+    for name, cam in s["cameras"].items():
+        rgb = (np.clip(rast.render_rgb(cam).image, 0, 1) * 255 + 0.5).astype(np.uint8)
+        cv2.imwrite(str(room / "images" / f"{name}.png"), rgb[:, :, ::-1])
+    bundle = res_bundles["grounded"]
+    idx = tmp_path / "index.h5"
+    assert main(["index-res", "--scene", str(room), "--bundle", str(bundle),
+                 "--out", str(idx)]) == 0  # fmt: skip
+    out = tmp_path / "r.json"
+    argv = ["eval", str(room), "--bundle", str(bundle), "--res-index", str(idx),
+            "--variants", "lifted_fieldless", "--out", str(out), "--html", str(tmp_path / "r.html")]  # fmt: skip
+    assert main(argv) == 0
+    r = json.loads(out.read_text())
+    for e in r["variants"]["lifted_fieldless"]["prompts"].values():
+        assert e["fit_views"] == s["train"]
+        assert e["views_chosen_by"].startswith("every indexed view")
+    assert main([*argv[:-4], "--res-masks", str(room / "res"), "--out", str(out), "--force"]) == 2
