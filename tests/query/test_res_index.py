@@ -163,7 +163,8 @@ def test_eval_from_an_index(res_bundles, tmp_path):
                  "--out", str(idx)]) == 0  # fmt: skip
     out = tmp_path / "r.json"
     argv = ["eval", str(room), "--bundle", str(bundle), "--res-index", str(idx),
-            "--variants", "lifted_fieldless", "--out", str(out), "--html", str(tmp_path / "r.html")]  # fmt: skip
+            "--variants", "lifted_fieldless", "--out", str(out),
+            "--html", str(tmp_path / "r.html")]  # fmt: skip
     assert main(argv) == 0
     r = json.loads(out.read_text())
     for e in r["variants"]["lifted_fieldless"]["prompts"].values():
