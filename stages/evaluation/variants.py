@@ -29,12 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.core.errors import warn
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
 from stages.query.lifted import MaskSource, lift_prompt, lifted_masks, view_visibility
 from stages.query.lifting import LiftParams
 from stages.query.masks import mask_of
 from stages.query.osh import Counts, HyperplaneParams, fit_osh, threshold_plane
-from stages.query.res import ResFiles, ResSource, choose_views
+from stages.query.res import NothingFound, ResFiles, ResSource, choose_views
 from stages.query.selection import select
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
@@ -231,9 +232,14 @@ class TfccModel:
     ) -> Prediction:
         info: dict = {}
         if variant == "full":
-            plane, _ = fit_hyperplane(
-                self.renderer, self.path, train, prompt, text, "eval", source, hp, planes
-            )
+            try:
+                plane, _ = fit_hyperplane(
+                    self.renderer, self.path, train, prompt, text, "eval", source, hp, planes
+                )
+            except NothingFound as e:  # an empty answer, as goi query gives
+                warn(f"{e}: the answer is empty")
+                masks = {v: np.zeros(self.views[v].covered.shape, bool) for v in views}
+                return Prediction(masks, np.zeros(self.field.seen.shape, bool), {"fit_views": []})
             info = _fit_record(plane.info, json.loads(plane.info["views"]))
         else:
             plane = threshold_plane(prompt, text, self.field.unit_codebook(), hp.threshold)

@@ -15,7 +15,7 @@ from typing import Annotated
 import numpy as np
 
 from stages.core.artifacts import input_digest
-from stages.core.errors import GoiError
+from stages.core.errors import GoiError, warn
 from stages.core.files import check_output_file, make_dir, refuse_inputs
 from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
@@ -32,7 +32,7 @@ from stages.query.masks import (
 )
 from stages.query.osh import HyperplaneParams, threshold_plane
 from stages.query.prompts import check_prompt, safe_name, text_embedding
-from stages.query.res import res_source
+from stages.query.res import NothingFound, res_source
 from stages.query.selection import Selection, select, write_selection
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
@@ -180,18 +180,22 @@ def run_query(
             sources.res_index,
             scene,
         )
-        plane, cached = fit_hyperplane(
-            renderer,
-            field_path,
-            scene.views("train"),
-            prompt,
-            text,
-            text_source,
-            masks,
-            hp,
-            HyperplaneRun(out / "hyperplanes.h5", refit=run.refit),
-            report,
-        )
+        try:
+            plane, cached = fit_hyperplane(
+                renderer,
+                field_path,
+                scene.views("train"),
+                prompt,
+                text,
+                text_source,
+                masks,
+                hp,
+                HyperplaneRun(out / "hyperplanes.h5", refit=run.refit),
+                report,
+            )
+        except NothingFound as e:
+            warn(f"{e}: the answer is empty")
+            return _empty_answer(scene, field_path, prompt, qp, run, cams, renderer, report)
         if wrote_res_masks(masks, cached):
             res_dir = res_masks_dir(out / "hyperplanes.h5", prompt)
     else:
@@ -210,6 +214,30 @@ def run_query(
     n = int(sel.sum())
     info = dict(plane.info)
     return QueryResult(prompt, pdir, cached, masks_written, sel_path, ply, n, info, res_dir)
+
+
+def _empty_answer(
+    scene: Scene,
+    field_path: Path,
+    prompt: str,
+    qp: QueryParams,
+    run: QueryRun,
+    cams: list[Camera],
+    renderer: SemanticRenderer,
+    report: Report,
+) -> QueryResult:
+    """The RES found nothing on any view: empty masks (with overlays), an empty selection."""
+    from stages.query.lifted_query import write_masks
+
+    pdir = Path(run.out) / safe_name(prompt)
+    none = np.zeros(scene.gaussians.count, bool)
+    written = write_masks(renderer.rast, none, cams, pdir / "masks", True, True, report)
+    inputs = {"ply": scene.ply_digest(), **input_digest("field", field_path)}
+    sel_path = write_selection(
+        pdir / "selection.h5", none, prompt, qp.mode, scene.ply_digest(), inputs, force=True
+    )
+    ply = _export(scene, none, prompt, qp.mode, run, pdir)
+    return QueryResult(prompt, pdir, False, written, sel_path, ply, 0, {"res": "found nothing"})
 
 
 def check_field_free(lp: LiftParams, sources: PromptSources) -> None:

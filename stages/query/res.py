@@ -27,6 +27,11 @@ from stages.scene.images import read_mask
 from stages.scene.scene import Scene
 
 
+class NothingFound(GoiError):
+    """Every RES mask of the prompt is empty (the detector found nothing): a query answers
+    with an empty selection and a warning; fitting a plane alone is refused."""
+
+
 class ResFiles:
     """RES masks made by any external tool: DIR/<view>.png (a prompt's own directory)."""
 
@@ -257,6 +262,8 @@ def choose_views(
     masks = [(c, source.mask(c)) for c in pool]
     masks = [(c, m) for c, m in masks if m.any()]
     if not masks:
-        raise GoiError(f"{source.source}: every RES mask of this prompt is empty; nothing to fit")
+        raise NothingFound(
+            f"{source.source}: every RES mask of this prompt is empty; nothing to fit"
+        )
     masks.sort(key=lambda cm: (-int(cm[1].sum()), cm[0].name))
     return masks[: p.fit_views]

@@ -248,3 +248,29 @@ def test_field_free_lifted_query_select_and_render_mask(unfitted, tmp_path):
     assert main(["query", *no_res, "--lift", "--out", str(tmp_path / "x")]) == 2
     assert main(["fit-hyperplane", *common, "--lift", "--out", str(tmp_path / "x.h5")]) == 2
     assert not (tmp_path / "x.h5").exists() and not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
+def test_a_res_that_finds_nothing_gives_an_empty_answer(queried, tmp_path, capsys):
+    """Every RES mask empty: goi query answers with empty masks and selection and a warning
+    (the paper's mode and --lift), not an error."""
+    s, run, root = queried
+    empty = tmp_path / "res" / "o9"
+    empty.mkdir(parents=True)
+    for name in s["train"]:
+        cv2.imwrite(str(empty / f"{name}.png"), np.zeros((96, 128), np.uint8))
+    for extra in ([], ["--lift"]):
+        out = tmp_path / f"q{len(extra)}"
+        capsys.readouterr()
+        argv = ["query", "--scene", str(s["scene"]), "--field", str(run / "field.h5"),
+                "--prompt", f"object {OBJ}", "--text-embeddings", str(root / "text.json"),
+                "--res-masks", str(tmp_path / "res"), "--prompt-id", "o9", "--out", str(out),
+                *extra]  # fmt: skip
+        assert main(argv) == 0
+        assert "the answer is empty" in capsys.readouterr().err
+        from stages.query.prompts import safe_name
+
+        pdir = out / safe_name(f"object {OBJ}")
+        assert not load_selection(pdir / "selection.h5").selected.any()
+        m = cv2.imread(str(pdir / "masks" / f"{s['test'][0]}.png"), cv2.IMREAD_GRAYSCALE)
+        assert m is not None and not m.any()
