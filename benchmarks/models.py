@@ -90,25 +90,20 @@ def _grounded(
 ) -> None:
     import numpy as np
 
-    from stages.models import res_processing as rp
     from stages.models.bundle import load_bundle
 
     bundle = load_bundle(bundle_dir)
     g = bundle._grounded
     g.check()
-    d, e, m, _ = g._models
-    spec = bundle.manifest["grounded"]
     h, w = g.canvas
     s = g.sam_size
     img = np.asarray(rgb)
     _timed(out, f"detector_s_{h}x{w}", lambda: g.detect(img, PROMPT), median_s, repeat)
-    pixels = rp.sam_inputs(img, s)
-    enc = spec["sam_encoder"]
-    _timed(out, f"sam_encoder_s_{s}", lambda: e.run(None, {enc["input"]: pixels}), median_s, repeat)
-    emb = e.run(None, {enc["input"]: pixels})[0]
-    box = rp.sam_boxes(np.asarray([[100, 80, 400, 360]]), img.shape[:2], s)
-    feed = {spec["sam_decoder"]["image_embeddings"]: emb, spec["sam_decoder"]["boxes"]: box}
-    out[f"sam_decoder_s_per_box_{s}"] = median_s(lambda: m.run(None, feed), repeat)
+    _timed(out, f"sam_encoder_s_{s}", lambda: g.sam.embed(img), median_s, repeat)
+    emb = g.sam.embed(img)
+    box = np.asarray([100, 80, 400, 360], np.float32)
+    hw = img.shape[:2]
+    out[f"sam_decoder_s_per_box_{s}"] = median_s(lambda: g.sam.box_logits(emb, box, hw), repeat)
     _timed(out, key, lambda: bundle.ground(img, PROMPT), median_s, repeat)
     out["grounded_boxes_per_view"] = float(len(bundle.ground(img, PROMPT).boxes))
 

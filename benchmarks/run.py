@@ -3,9 +3,12 @@
     python benchmarks/run.py --suite raster [--json OUT] [--repeat 5]
 
 Suites: raster, pooled (the pooled blend cache at 3M Gaussians), field, query (goi's own
-stages) and models (the RES models at their real size, random weights, exported and timed in
-onnxruntime; benchmarks/models.py), distributed (fit-field on 1 and 2 torchrun ranks against
-one process: memory, all_reduce bytes, agreement; benchmarks/distributed.py).
+stages), models (the RES models at their real size, random weights, exported and timed in
+onnxruntime; benchmarks/models.py), index (prompts from a per-scene RES index on the dev room
+against the whole RES per view and against the paper's route; benchmarks/index.py),
+distributed (fit-field on 1 and 2 torchrun ranks against one process: memory, all_reduce
+bytes, agreement; benchmarks/distributed.py) and public-eval (the public benchmarks'
+annotation reading and metrics; benchmarks/public_eval.py).
 
 Figures are measured, never asserted: tests check behaviour, this checks speed.
 """
@@ -399,6 +402,12 @@ def suite_public_eval(repeat: int, tmp: Path) -> dict[str, float]:
     return run(repeat, tmp, median_s)
 
 
+def suite_index(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.index import suite_index as index
+
+    return index(repeat, tmp, median_s)
+
+
 def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, float]:  # noqa: ANN001
     """The lifted mode: one view's mask lifted (projection, binning and the tile walk), and a
     prompt with K = 8 mask files given (lifting all 8, fusion, the OSH on the evidence, and the
@@ -443,6 +452,7 @@ SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "models": suite_models,
     "public-eval": suite_public_eval,
     "distributed": suite_distributed,
+    "index": suite_index,
 }
 
 

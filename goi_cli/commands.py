@@ -11,6 +11,7 @@ from goi_cli.options import EXISTING, build, dataclass_options, load_scene_from,
 from goi_cli.report import TERMINAL
 from stages.core.errors import GoiError
 from stages.models.export import ModelExportParams, ModelExportRun
+from stages.query.res_index import ResIndexRun
 from stages.semantics.codebook import CodebookParams, CodebookRun
 from stages.semantics.extract import ExtractParams, ExtractRun
 from stages.semantics.field_model import FieldParams
@@ -140,10 +141,28 @@ def inspect_cmd(files: tuple[str, ...]) -> None:
         raise GoiError(f"{', '.join(bad)}: see the problems above")
 
 
+@click.command("index-res")
+@scene_options
+@dataclass_options(ResIndexRun)
+def index_res_cmd(**kw) -> None:
+    """Index the scene for prompts: run the bundle's RES image side (SAM's image encoder,
+    OWLv2's vision tower, CLIPSeg's visual activations) once on every training photo and write
+    it (schema goi.res_index). Then `goi query|select|render-mask|fit-hyperplane|eval|demo
+    --res-index FILE --bundle B` run only the prompt side: a new prompt costs a text encoding
+    and a small decoder per view. An interrupted run resumes from <out>.partial.
+    """
+    from stages.query.res_index import build_res_index
+
+    scene = load_scene_from(kw)
+    out = build_res_index(scene, build(ResIndexRun, kw), TERMINAL)
+    click.echo(f"RES index: {out}")
+
+
 def register(group: click.Group) -> None:
     group.add_command(extract_cmd)
     group.add_command(extract_cmd, "extract-features")
     group.add_command(init_codebook_cmd)
     group.add_command(fit_field_cmd)
     group.add_command(export_model_cmd)
+    group.add_command(index_res_cmd)
     group.add_command(inspect_cmd)

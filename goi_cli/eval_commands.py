@@ -18,8 +18,9 @@ from stages.evaluation.pipeline import EvalParams, EvalRun
 @click.option(
     "--features",
     type=click.Path(path_type=Path),
-    required=True,
-    help="Directory of per-view feature files for the training views (<view>.npy or .pt).",
+    default=None,
+    help="Directory of per-view feature files for the training views (<view>.npy or .pt); "
+    "needed by every variant but lifted_fieldless.",
 )
 @click.option(
     "--res-masks",
@@ -45,14 +46,15 @@ from stages.evaluation.pipeline import EvalParams, EvalRun
 @dataclass_options(EvalParams)
 def eval_cmd(
     room: Path,
-    features: Path,
+    features: Path | None,
     res_masks: Path | None,
     benchmark: str | None,
     scenes: tuple[str, ...],
     **kw,
 ) -> None:
     """Run the whole pipeline on a benchmark ROOM (layout: a room README) and score the masks on
-    its TEST views with the paper's metrics, for the four ablation variants. The RES masks are
+    its TEST views with the paper's metrics, for the four ablation variants and goi's lifted
+    modes (lifted, with the field; lifted_fieldless, from the RES masks alone). The RES masks are
     files (--res-masks) or made by a bundle's RES model (--bundle). With --benchmark NAME, ROOM
     is a public benchmark (lerf-ovs, lerf-mask, 3d-ovs, goi-m360, replica-goi) scored by its
     own protocol and by goi's metrics."""
@@ -74,7 +76,7 @@ def _benchmark(
     name: str | None,
     root: Path,
     scenes: tuple[str, ...],
-    features: Path,
+    features: Path | None,
     res_masks: Path | None,
     p: EvalParams,
     run: EvalRun,
@@ -84,6 +86,8 @@ def _benchmark(
 
     if name is None:
         raise GoiError("--scene: only with --benchmark NAME")
+    if features is None:
+        raise GoiError("--features: a public benchmark is scored with the field; give its features")
     r = run_benchmark(name, root, scenes, features, res_masks, p, run, TERMINAL)
     b = r.report["benchmark"]
     click.echo(f"{name}: protocol {b['protocol']}; mean over {len(b['scenes'])} scene(s)")

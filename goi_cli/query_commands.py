@@ -25,6 +25,14 @@ from stages.query.pipeline import PromptSources, QueryParams, QueryRun
 field_option = click.option(
     "--field", type=EXISTING, required=True, help="Field artifact (goi fit-field)."
 )
+#: query / select / render-mask: with --lift and a RES source the field is optional.
+field_or_lift_option = click.option(
+    "--field",
+    type=EXISTING,
+    help="Field artifact (goi fit-field). Optional with --lift and a RES source (--res-masks "
+    "or a bundle's RES): then the RES masks alone decide (field-free lifted mode) and the "
+    "Gaussians no view's evidence reaches stay out.",
+)
 prompt_option = click.option("--prompt", required=True, help="The text query.")
 hyperplanes_option = click.option(
     "--hyperplanes", type=EXISTING, required=True, help="Hyperplanes artifact (fit-hyperplane)."
@@ -40,11 +48,14 @@ source_options = dataclass_options(PromptSources)
 lift_options = dataclass_options(LiftParams)
 
 
-def _lifted_answer(scene, field: Path, prompt: str, kw: dict, need_positive: bool = False):  # noqa: ANN001, ANN202
-    """The lifted answer of a prompt for select / render-mask / fit-hyperplane --lift."""
+def _lifted_answer(scene, field: Path | None, prompt: str, kw: dict, need_positive: bool = False):  # noqa: ANN001, ANN202, E501
+    """The lifted answer of a prompt for select / render-mask / fit-hyperplane --lift, and the
+    rasterizer it was made with; field None is the field-free lifted mode."""
     from stages.query.lifted_query import answer_prompt
+    from stages.query.pipeline import check_field_free
     from stages.query.prompts import check_prompt, text_embedding
     from stages.query.res import res_source
+    from stages.render.rasterizer import Rasterizer
     from stages.semantics.decode import SemanticRenderer
     from stages.semantics.field import load_field_for
 
@@ -52,17 +63,38 @@ def _lifted_answer(scene, field: Path, prompt: str, kw: dict, need_positive: boo
     hp = build(HyperplaneParams, kw) if "loss" in kw else HyperplaneParams()
     lp.check(hp)
     prompt = check_prompt(prompt)
+    if field is None:
+        check_field_free(lp, src)
+        rast = Rasterizer.from_gaussians(scene.gaussians)
+        masks = res_source(
+            src.res_masks, src.bundle, src.prompt_id, prompt, rast, src.res_index, scene
+        )
+        ans = answer_prompt(scene, rast, prompt, None, masks, hp, lp, TERMINAL, need_positive)
+        return ans, rast, lp
     f = load_field_for(field, scene.ply_digest())
     text, _ = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
-    masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer)
+    masks = res_source(
+        src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast, src.res_index, scene
+    )
     ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, TERMINAL, need_positive)
-    return ans, renderer, lp
+    return ans, renderer.rast, lp
+
+
+def _need_field(field: Path | None) -> Path:
+    from stages.core.errors import GoiError
+
+    if field is None:
+        raise GoiError(
+            "--field is needed (or --lift with --res-masks or a bundle's RES: the field-free "
+            "lifted mode)"
+        )
+    return field
 
 
 def _source_paths(kw: dict) -> list[Path | None]:
     """The prompt's input files (embeddings, bundle, RES masks): never an output."""
-    return [kw.get("text_embeddings"), kw.get("bundle"), kw.get("res_masks")]
+    return [kw.get("text_embeddings"), kw.get("bundle"), kw.get("res_masks"), kw.get("res_index")]
 
 
 def _scene_files(scene) -> list[Path]:  # noqa: ANN001
@@ -109,6 +141,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
         run = build(HyperplaneRun, kw)
         check_plane_out(run.out, [field, *_source_paths(kw), *_scene_files(scene)])
         ans, _, lp = _lifted_answer(scene, field, prompt, kw, need_positive=True)
+        assert ans.plane is not None  # a field took part
         with staged_outputs():
             add_plane(run.out, ans.plane, field, {**ans.record(lp), "mode": "lifted"})
         n = int(ans.plane.positive.sum())
@@ -121,12 +154,14 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     src = build(PromptSources, kw)
     p, run = build(HyperplaneParams, kw), build(HyperplaneRun, kw)
     prompt = check_prompt(prompt)
-    inputs = [field, src.text_embeddings, src.bundle, src.res_masks, scene.ply_path]
+    inputs = [field, src.text_embeddings, src.bundle, src.res_masks, src.res_index, scene.ply_path]
     refuse_inputs({"--out": run.out}, [*inputs, *scene.camera_files])
     f = load_field_for(field, scene.ply_digest())
     text, text_source = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
-    masks = res_source(src.res_masks, src.bundle, src.prompt_id, prompt, renderer)
+    masks = res_source(
+        src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast, src.res_index, scene
+    )
     with staged_outputs():  # the plane and the RES masks it was fitted on, or neither
         train = scene.views("train")
         plane, cached = fit_hyperplane(
@@ -141,7 +176,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 
 @click.command("render-mask")
 @scene_options
-@field_option
+@field_or_lift_option
 @prompt_option
 @plane_or_lift_option
 @source_options
@@ -154,7 +189,9 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 )
 @dataclass_options(MaskRun)
 @dataclass_options(MaskParams)
-def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_file, **kw) -> None:  # noqa: ANN001
+def render_mask_cmd(
+    field: Path | None, prompt: str, hyperplanes: Path | None, camera_file, **kw
+) -> None:  # noqa: ANN001
     """Render the prompt's binary mask (PNG) and an overlay on the rendered RGB at any views.
     With --lift the mask is the 3D selection lifted from RES masks, seen from the view (a pixel
     is in when the selected Gaussians carry more than half of its blend weight)."""
@@ -176,15 +213,16 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_f
     if kw["lift"]:
         from stages.query.lifted_query import write_masks
 
-        ans, renderer, _ = _lifted_answer(scene, field, prompt, kw)
+        ans, rast, _ = _lifted_answer(scene, field, prompt, kw)
         with staged_outputs():
             written = write_masks(
-                renderer, ans.selected, chosen, run.out, not run.no_overlay, run.force, TERMINAL
+                rast, ans.selected, chosen, run.out, not run.no_overlay, run.force, TERMINAL
             )
         click.echo(f"masks ({len(written)} views, lifted from {len(ans.views)} views): {run.out}")
         return
     build(PromptSources, kw)
     build(LiftParams, kw).check()
+    field = _need_field(field)
     f = load_field_for(field, scene.ply_digest())
     n_entries, dim = f.codebook.shape
     plane = load_plane(_need_plane(hyperplanes), prompt, field, n_entries, dim)
@@ -196,7 +234,7 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_f
 
 @click.command("select")
 @scene_options
-@field_option
+@field_or_lift_option
 @prompt_option
 @plane_or_lift_option
 @source_options
@@ -211,7 +249,13 @@ def render_mask_cmd(field: Path, prompt: str, hyperplanes: Path | None, camera_f
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Selection artifact.")
 @click.option("--force", is_flag=True, help="Overwrite an existing output.")
 def select_cmd(
-    field: Path, prompt: str, hyperplanes: Path | None, mode: str, out: Path, force: bool, **kw
+    field: Path | None,
+    prompt: str,
+    hyperplanes: Path | None,
+    mode: str,
+    out: Path,
+    force: bool,
+    **kw,
 ) -> None:
     """Select the 3D Gaussians of interest: those whose decoded feature is on the plane's
     positive side (with --lift: the RES masks of many views lifted onto the Gaussians and
@@ -231,7 +275,7 @@ def select_cmd(
         from stages.query.lifted_query import write_lifted_selection
 
         ans, _, lp = _lifted_answer(scene, field, prompt, kw)
-        write_lifted_selection(out, ans, scene, field, lp, force)
+        write_lifted_selection(out, ans, scene, field, lp, force, prompt)
         click.echo(
             f"selection (lifted from {len(ans.views)} views, {int(ans.selected.sum())} of "
             f"{ans.selected.size} Gaussians): {out}"
@@ -240,12 +284,13 @@ def select_cmd(
     build(PromptSources, kw)
     build(LiftParams, kw).check()
     hyperplanes = _need_plane(hyperplanes)
+    field = _need_field(field)
     f = load_field_for(field, scene.ply_digest())
     n_entries, dim = f.codebook.shape
     plane = plane_for(load_plane(hyperplanes, prompt, field, n_entries, dim), mode, f, THRESHOLD)
     sel = select(f, plane)
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field)}
-    write_selection(out, sel, plane, mode, scene.ply_digest(), inputs, force)
+    write_selection(out, sel, plane.prompt, mode, scene.ply_digest(), inputs, force)
     click.echo(f"selection ({int(sel.sum())} of {sel.size} Gaussians): {out}")
 
 
@@ -275,14 +320,14 @@ def export_ply_cmd(selection: Path, field: Path | None, **kw) -> None:
 
 @click.command("query")
 @scene_options
-@field_option
+@field_or_lift_option
 @prompt_option
 @source_options
 @dataclass_options(QueryRun)
 @dataclass_options(QueryParams)
 @dataclass_options(HyperplaneParams)
 @lift_options
-def query_cmd(field: Path, prompt: str, **kw) -> None:
+def query_cmd(field: Path | None, prompt: str, **kw) -> None:
     """Query the scene with a text prompt: fit the hyperplane unless cached, render masks,
     select the Gaussians of interest and export them as a PLY. Prints where everything went."""
     from stages.query.pipeline import run_query

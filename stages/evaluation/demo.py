@@ -27,6 +27,7 @@ from stages.query.lifting import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryResult, QueryRun, run_query
 from stages.query.prompts import safe_name, view_file_name
+from stages.query.res import checked_index
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
 from stages.scene.scene import Scene, load_scene
@@ -58,6 +59,9 @@ class DemoRun:
     force: bool = False
     """Write into an --out directory that holds files the demo did not make (they may be
     replaced); a new, empty or earlier demo's directory needs no --force."""
+    res_index: Path | None = None
+    """RES index of the demo scene made with --bundle (goi index-res --scene
+    goi_cli/demo_scene): only the bundle's prompt side runs, on the scene's photos."""
 
 
 #: Marks a directory as the demo's own output, so that running the demo again may replace it.
@@ -119,6 +123,8 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
     scene_dir = DEMO_SCENE
     if not (scene_dir / "point_cloud.ply").is_file():
         raise GoiError(f"{scene_dir}: the demo scene is missing from this installation")
+    if run.res_index is not None and run.bundle is None:
+        raise GoiError("--res-index needs --bundle DIR, the bundle the index was made with")
     if run.bundle is not None:  # opened and checked before the field is fitted
         bundle = load_bundle(run.bundle)
         if not bundle.has_res:
@@ -127,10 +133,12 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
         del bundle
     out = Path(run.out)
     prompts = _chosen_prompts(load_prompts(scene_dir), p.prompts)  # before --out is made
+    scene = load_scene(scene_dir)
+    if run.res_index is not None:  # checked against the scene before the field is fitted
+        checked_index(run.res_index, run.bundle, scene)
     _check_out(out, run.force)
     make_dir(out, "--out")
     (out / DEMO_MARKER).write_text("written by goi demo; running the demo again replaces it\n")
-    scene = load_scene(scene_dir)
     report.log(f"demo: {scene.gaussians.count} Gaussians, {len(scene.train)} training views")
     feats = import_features(
         scene,
@@ -160,6 +168,7 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
             run.bundle,
             None if run.bundle else scene_dir / "res",
             prompt.id,
+            run.res_index,
         )
         both = [
             run_query(
@@ -196,16 +205,20 @@ def _res_masks(answers: list[DemoAnswer], renderer: SemanticRenderer, scene: Sce
     for a in answers:
         r = a.result
         source = str(r.info.get("mask_source", ""))
-        if not source.startswith("bundle:"):
+        if not source.startswith(("bundle:", "index:")):
             continue
+        photo = source.startswith("index:")  # an index ran on the photos, a model on renders
         # a cached plane ran no model; its fit's masks are still in the prompt's res/
         res_dir = r.res_masks or r.directory / "res"
         figs = {}
         for view in json.loads(r.info["views"]):
             path = res_dir / f"{view_file_name(view)}.png"
             if path.is_file():
-                rgb = renderer.rast.render_rgb(scene.camera(view)).image
-                rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+                if photo:
+                    rgb8 = scene.load_image(scene.camera(view))
+                else:
+                    rgb = renderer.rast.render_rgb(scene.camera(view)).image
+                    rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
                 figs[view] = (rgb8, read_mask(path))
         if figs:
             out[a.prompt.id] = (source, figs)

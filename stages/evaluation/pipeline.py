@@ -42,15 +42,17 @@ from stages.evaluation.variants import (
     FIELD_KIND,
     VARIANTS,
     DirectModel,
+    FieldFreeModel,
     Prediction,
     TfccModel,
+    VisibilityCache,
     render_direct,
 )
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.lifting import LiftParams
 from stages.query.osh import THRESHOLD, HyperplaneParams
-from stages.query.res import ResFiles, ResModel, ResSource
+from stages.query.res import ResFiles, ResIndexed, ResModel, ResSource, checked_index
 from stages.render.rasterizer import Rasterizer
 from stages.scene.scene import Scene
 from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
@@ -98,6 +100,9 @@ class EvalRun:
     bundle: Path | None = None
     """Model bundle whose RES (docs/models.md) makes the RES masks on goi's rendering of the
     training views, instead of --res-masks; the HTML page shows the masks the fits used."""
+    res_index: Path | None = None
+    """With --bundle: the room's RES index (goi index-res) made with it; only the bundle's
+    prompt side runs, on the room's photos, and lifted variants lift every indexed view."""
     variants: str = ",".join(VARIANTS)
     """Comma-separated variants to run (lifted is goi's added mode, the others the paper's)."""
     force: bool = False
@@ -137,15 +142,20 @@ def _chosen_variants(text: str) -> list[str]:
 
 def _fit_models(
     room: Room,
-    features: Path,
+    features: Path | None,
     work: Path,
     variants: list[str],
     p: EvalParams,
     timer: _Timer,
     report: Report,
 ) -> tuple[TfccModel | None, DirectModel | None]:
-    """Features, codebook and the fields the variants need, with their test views rendered."""
+    """Features, codebook and the fields the variants need, with their test views rendered
+    (nothing when only field-free variants run)."""
     scene = room.scene
+    kinds = {FIELD_KIND[v] for v in variants} - {"none"}
+    if not kinds:
+        return None, None
+    assert features is not None  # run_eval asks for it when a variant needs a field
     feats, cb = work / "features.h5", work / "codebook.h5"
     with timer("extract"):
         files = feature_files(scene, features, "train")
@@ -158,7 +168,6 @@ def _fit_models(
         same = {"n_entries": cp.entries, "seed": cp.seed}
         if not _reusable(cb, "goi.codebook", input_digest("features", feats), report, same):
             init_codebook(feats, cp, CodebookRun(cb, force=True), report)
-    kinds = {FIELD_KIND[v] for v in variants}
     fitted = {}
     for kind in ("tfcc", "direct"):
         if kind not in kinds:
@@ -186,7 +195,9 @@ def _fit_models(
             field = load_field(fitted["tfcc"])
             renderer = SemanticRenderer(scene.gaussians, field)
             views = {c.name: renderer.render(c, with_rgb=True) for c in test}
-            tfcc = TfccModel(field, fitted["tfcc"], renderer, views, {c.name: c for c in test})
+            cams = {c.name: c for c in test}
+            vis = VisibilityCache(renderer.rast)
+            tfcc = TfccModel(field, fitted["tfcc"], renderer, views, cams, vis)
         if "direct" in fitted:
             field = load_field(fitted["direct"])
             renderer = SemanticRenderer(scene.gaussians, field)
@@ -213,21 +224,25 @@ def _res_bundle(res: Path | None, bundle: Path | None) -> Bundle | None:
 
 
 def _res_figures(
-    sources: dict[str, ResSource], doc: dict, renderer: SemanticRenderer, scene: Scene
+    sources: dict[str, ResSource], doc: dict, rast: Rasterizer, scene: Scene
 ) -> dict[str, tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]]:
     """For the page: each prompt's RES masks that a model made and a fit used, with the
     rendering the model ran on. {prompt id: (source, {view: (rgb, mask)})}."""
     out = {}
     for pid, source in sources.items():
-        if not isinstance(source, ResModel):
+        if not isinstance(source, ResModel | ResIndexed):
             continue
         used: dict[str, None] = {}  # ordered set over the variants that fitted
         for v in doc["variants"].values():
             used.update(dict.fromkeys(v["prompts"][pid].get("fit_views", [])))
         figs = {}
         for view in used:
-            rgb = renderer.rast.render_rgb(scene.camera(view)).image
-            figs[view] = ((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), source.computed[view])
+            if isinstance(source, ResIndexed):  # an index ran on the photos
+                rgb8 = scene.load_image(scene.camera(view))
+            else:
+                rgb = rast.render_rgb(scene.camera(view)).image
+                rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+            figs[view] = (rgb8, source.computed[view])
         if figs:
             out[pid] = (source.source, figs)
     return out
@@ -379,14 +394,15 @@ def _check_entries(p: EvalParams, files: dict[str, Path]) -> None:
 
 def run_eval(
     room_dir: Path,
-    features: Path,
+    features: Path | None,
     res: Path | None,
     p: EvalParams,
     run: EvalRun,
     report: Report = SILENT,
 ) -> EvalResult:
     """Run every variant on the room and write report.json (and the HTML page). The RES masks
-    are the files under `res`, or made by `run.bundle`'s RES."""
+    are the files under `res`, or made by `run.bundle`'s RES. `features` may be None when only
+    field-free variants run."""
     check_params(p)
     variants = _chosen_variants(run.variants)
     room = load_room(Path(room_dir), run.text_embeddings)
@@ -400,17 +416,32 @@ def run_eval(
     bundle = _res_bundle(res, run.bundle)
     sources: dict[str, ResSource] = {}
     if res is not None:
+        if run.res_index is not None:
+            raise GoiError("give one of --res-masks DIR or --res-index FILE (with --bundle)")
         sources = {p.id: ResFiles(Path(res), p.id, p.text) for p in room.prompts}
-    files = feature_files(room.scene, Path(features), "train", "--features")
-    first = next(iter(files.values()))
-    dim = load_feature_file(first).shape[0]
-    text_dim = next(iter(room.embeddings.values())).size
-    if dim != text_dim:
+    if run.res_index is not None:
+        index, ib = checked_index(Path(run.res_index), bundle, room.scene)
+        sources = {p.id: ResIndexed(index, ib, p.text, room.scene) for p in room.prompts}
+    files: dict[str, Path] = {}
+    with_field = [v for v in variants if FIELD_KIND[v] != "none"]
+    if with_field and features is None:
         raise GoiError(
-            f"{first}: the features have {dim} dimensions but the prompts' text embeddings "
-            f"({room.embeddings_path}) {text_dim}; image and text features must share one space"
+            f"--features: needed by {', '.join(with_field)} (they fit a field); without it "
+            "only --variants lifted_fieldless runs"
         )
-    _check_entries(p, files)
+    if with_field:
+        assert features is not None
+        files = feature_files(room.scene, Path(features), "train", "--features")
+        first = next(iter(files.values()))
+        dim = load_feature_file(first).shape[0]
+        text_dim = next(iter(room.embeddings.values())).size
+        if dim != text_dim:
+            raise GoiError(
+                f"{first}: the features have {dim} dimensions but the prompts' text embeddings "
+                f"({room.embeddings_path}) {text_dim}; image and text features must share one "
+                "space"
+            )
+        _check_entries(p, files)
     n_train = len(room.scene.views("train"))
     if p.res_views is not None and p.res_views > n_train:
         raise GoiError(
@@ -430,6 +461,7 @@ def run_eval(
         *files.values(),
         Path(res) if res is not None else None,
         run.bundle,
+        run.res_index,
     ]
     outputs = {
         "--out": run.out,
@@ -443,10 +475,15 @@ def run_eval(
         f"eval: room {room.dir} ({scene.gaussians.count} Gaussians, {len(room.prompts)} prompts)"
     )
     tfcc, direct = _fit_models(room, features, work, variants, p, timer, report)
-    fitted = tfcc or direct
-    assert fitted is not None
-    if bundle is not None:  # one bundle, its sessions shared by every prompt
-        sources = {p.id: ResModel(bundle, p.text, fitted.renderer) for p in room.prompts}
+    # one rasterizer and one visibility cache for every lifted variant
+    if tfcc is not None:
+        rast, vis = tfcc.renderer.rast, tfcc.visibility
+    else:
+        rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(scene.gaussians)
+        vis = VisibilityCache(rast)
+    free = FieldFreeModel(rast, {c.name: c for c in scene.views("test")}, vis)
+    if bundle is not None and not sources:  # one bundle, its sessions shared by every prompt
+        sources = {p.id: ResModel(bundle, p.text, rast) for p in room.prompts}
     with timer("contribution_3d"):
         weight = _visibility(room) if room.gaussian_ids is not None else None
     test = {c.name for c in scene.views("test")}
@@ -480,7 +517,7 @@ def run_eval(
                     "params": lp.config(),
                 }
             }
-            if "lifted" in variants
+            if "lifted" in variants or "lifted_fieldless" in variants
             else {}
         ),
         "timings_s": timer.t,
@@ -493,7 +530,9 @@ def run_eval(
         gts = {v: room.ground_truth(prompt, v) for v in views}
         for variant in variants:
             t0 = time.perf_counter()
-            if variant == "lifted":
+            if variant == "lifted_fieldless":
+                pred = free.predict(prompt.text, source, train, hp, lp, views)
+            elif variant == "lifted":
                 assert tfcc is not None
                 pred = tfcc.predict_lifted(prompt.text, text, source, train, hp, lp, views)
             elif FIELD_KIND[variant] == "tfcc":
@@ -518,7 +557,7 @@ def run_eval(
         if run.html is not None:
             with timer("html"):  # doc["timings_s"] is timer.t: the page's own time lands too
                 views_rgb = tfcc.views if tfcc is not None else {}
-                res_figs = _res_figures(sources, doc, fitted.renderer, scene)
+                res_figs = _res_figures(sources, doc, rast, scene)
                 eval_page(Path(run.html), doc, room.prompts, figures, views_rgb, scene, res_figs)
         validate_json(doc, "goi.eval", str(run.out))  # what we write, our reader must accept
         write_json(run.out, doc, force=True)

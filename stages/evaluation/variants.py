@@ -11,6 +11,9 @@ and goi's added mode (not in the paper):
                 (stages.query.lifted): every mask file of the prompt, or K views chosen by goi
                 with the room's mask files standing in for a RES model; masks are rendered
                 from the 3D selection
+  lifted_fieldless  the same views' RES masks lifted, without any field (no features,
+                codebook or fit-field): the vote alone decides and the Gaussians no view's
+                evidence reaches stay out; measures what the field adds to lifted
 
 The fixed threshold is goi's one documented default (stages.query.osh.THRESHOLD) for every
 prompt and room; it is never tuned on test masks.
@@ -20,30 +23,35 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from stages.core.errors import warn
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
 from stages.query.lifted import MaskSource, lift_prompt, lifted_masks, view_visibility
 from stages.query.lifting import LiftParams
 from stages.query.masks import mask_of
 from stages.query.osh import Counts, HyperplaneParams, fit_osh, threshold_plane
-from stages.query.res import ResFiles, ResSource, choose_views
+from stages.query.res import NothingFound, ResFiles, ResSource, choose_views
 from stages.query.selection import select
+from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.semantics.decode import COVERED_ALPHA, DecodedView, SemanticRenderer
 from stages.semantics.field import Field
 
-VARIANTS = ("full", "without_osh", "without_tfcc", "baseline", "lifted")
-#: Which field each variant needs: "tfcc" (the paper's) or "direct" (fit-field --no-tfcc).
+VARIANTS = ("full", "without_osh", "without_tfcc", "baseline", "lifted", "lifted_fieldless")
+#: Which field each variant needs: "tfcc" (the paper's), "direct" (fit-field --no-tfcc) or
+#: "none" (the field-free lifted mode).
 FIELD_KIND = {
     "full": "tfcc",
     "without_osh": "tfcc",
     "without_tfcc": "direct",
     "baseline": "direct",
     "lifted": "tfcc",
+    "lifted_fieldless": "none",
 }
 #: Pixels per fitting view the per-pixel (without-TFCC) hyperplane is fitted on.
 DIRECT_FIT_PIXELS = 20_000
@@ -108,6 +116,7 @@ class RoomModel:
     def __init__(self, files: ResFiles):
         self.files = files
         self.source = f"{files.source} (as a RES model)"
+        self.every_view = False
 
     def available(self, cams: list[Camera]) -> list[Camera]:
         return cams
@@ -118,6 +127,73 @@ class RoomModel:
         return np.zeros((cam.height, cam.width), bool)
 
 
+def predict_lifted(
+    renderer: SemanticRenderer | Rasterizer,
+    visibility: Callable[[Camera], np.ndarray],
+    test_cams: dict[str, Camera],
+    prompt: str,
+    text: np.ndarray | None,
+    source: ResSource,
+    train: list[Camera],
+    hp: HyperplaneParams,
+    lp: LiftParams,
+    views: list[str],
+) -> Prediction:
+    """The lifted answer (with the field, or field-free from a bare Rasterizer and text None)
+    and its masks on the test views."""
+    # mask files stand in for a model that answers on the views goi picks; a bundle's RES
+    # model answers on them itself
+    src: MaskSource = source
+    if lp.res_views is not None and isinstance(source, ResFiles):
+        src = RoomModel(source)
+    ans = lift_prompt(renderer, train, src, prompt, text, hp, lp, visibility)
+    rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
+    masks = lifted_masks(rast, ans.selected, [test_cams[v] for v in views])
+    rec = ans.record(lp)
+    info = {
+        "fit_views": rec["views"],
+        "views_chosen_by": rec["chosen_by"],
+        "view_confidence": {d["view"]: d["confidence"] for d in rec["per_view"]},
+        "n_evident": rec["n_evident"],
+    }
+    return Prediction(masks, ans.selected, info)
+
+
+@dataclass
+class VisibilityCache:
+    """[G] blend weight per Gaussian in each training view, computed once for all prompts."""
+
+    rast: Rasterizer
+    views: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # train -> [G]
+
+    def __call__(self, cam: Camera) -> np.ndarray:
+        if cam.name not in self.views:
+            self.views[cam.name] = view_visibility(self.rast, cam)
+        return self.views[cam.name]
+
+
+@dataclass
+class FieldFreeModel:
+    """The field-free lifted mode: the scene's rasterizer alone."""
+
+    rast: Rasterizer
+    cams: dict[str, Camera]  # test view -> camera
+    visibility: VisibilityCache
+
+    def predict(
+        self,
+        prompt: str,
+        source: ResSource,
+        train: list[Camera],
+        hp: HyperplaneParams,
+        lp: LiftParams,
+        views: list[str],
+    ) -> Prediction:
+        return predict_lifted(
+            self.rast, self.visibility, self.cams, prompt, None, source, train, hp, lp, views
+        )
+
+
 @dataclass
 class TfccModel:
     """The paper's field, with the test views rendered and decoded once for every prompt."""
@@ -126,14 +202,8 @@ class TfccModel:
     path: Path
     renderer: SemanticRenderer
     views: dict[str, DecodedView]  # test view -> decoded render (with RGB, for the pages)
-    cams: dict[str, Camera] = dataclasses.field(default_factory=dict)  # test view -> camera
-    _visibility: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # train -> [G]
-
-    def visibility(self, cam: Camera) -> np.ndarray:
-        """[G] blend weight per Gaussian in a training view, computed once for all prompts."""
-        if cam.name not in self._visibility:
-            self._visibility[cam.name] = view_visibility(self.renderer.rast, cam)
-        return self._visibility[cam.name]
+    cams: dict[str, Camera]  # test view -> camera
+    visibility: VisibilityCache
 
     def predict_lifted(
         self,
@@ -145,21 +215,9 @@ class TfccModel:
         lp: LiftParams,
         views: list[str],
     ) -> Prediction:
-        # mask files stand in for a model that answers on the views goi picks; a bundle's RES
-        # model answers on them itself
-        src: MaskSource = source
-        if lp.res_views is not None and isinstance(source, ResFiles):
-            src = RoomModel(source)
-        ans = lift_prompt(self.renderer, train, src, prompt, text, hp, lp, self.visibility)
-        masks = lifted_masks(self.renderer.rast, ans.selected, [self.cams[v] for v in views])
-        rec = ans.record(lp)
-        info = {
-            "fit_views": rec["views"],
-            "views_chosen_by": rec["chosen_by"],
-            "view_confidence": {d["view"]: d["confidence"] for d in rec["per_view"]},
-            "n_evident": rec["n_evident"],
-        }
-        return Prediction(masks, ans.selected, info)
+        return predict_lifted(
+            self.renderer, self.visibility, self.cams, prompt, text, source, train, hp, lp, views
+        )
 
     def predict(
         self,
@@ -174,9 +232,14 @@ class TfccModel:
     ) -> Prediction:
         info: dict = {}
         if variant == "full":
-            plane, _ = fit_hyperplane(
-                self.renderer, self.path, train, prompt, text, "eval", source, hp, planes
-            )
+            try:
+                plane, _ = fit_hyperplane(
+                    self.renderer, self.path, train, prompt, text, "eval", source, hp, planes
+                )
+            except NothingFound as e:  # an empty answer, as goi query gives
+                warn(f"{e}: the answer is empty")
+                masks = {v: np.zeros(self.views[v].covered.shape, bool) for v in views}
+                return Prediction(masks, np.zeros(self.field.seen.shape, bool), {"fit_views": []})
             info = _fit_record(plane.info, json.loads(plane.info["views"]))
         else:
             plane = threshold_plane(prompt, text, self.field.unit_codebook(), hp.threshold)

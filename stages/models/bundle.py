@@ -24,7 +24,7 @@ from stages.core.artifacts import sha256_files
 from stages.core.errors import GoiError
 from stages.core.files import read_json
 from stages.models import res_processing as rp
-from stages.models.grounded import GroundedSam, Grounding, check_spec
+from stages.models.grounded import GroundedSam, Grounding, ResPrompt, check_spec
 from stages.models.manifest import check_values
 from stages.models.onnx_io import (
     Tokens,
@@ -186,6 +186,72 @@ class Bundle:
             )
         mask = rp.scores_to_mask(out[0, 0], rgb.shape[:2], float(spec["threshold"]))
         return Grounding(mask, np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
+
+    # --- the RES split (docs/models.md "The RES split"): the prompt-independent image side,
+    # computed once per image (the RES index caches it), and the prompt side run on it.
+    @property
+    def res_indexable(self) -> bool:
+        """True when the bundle's RES has a prompt-independent image side worth caching per
+        image. A single-model RES (CLIPSeg exported whole) has none: its text enters the graph
+        with the image."""
+        return self.res_kind == "grounded"
+
+    def res_image_side_spec(self) -> dict[str, tuple[tuple[int, ...], str]]:
+        """key -> (shape, numpy dtype name) of every array `res_image_side` returns, fixed per
+        bundle ({} when the RES has no image side)."""
+        self.check_res()
+        if self.res_kind == "grounded":
+            return self._grounded.image_side_spec()
+        return {}
+
+    def res_image_side(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
+        """[H, W, 3] uint8 RGB -> the named prompt-independent arrays of this image, as
+        `res_image_side_spec` says (Grounded-SAM: SAM's image embedding)."""
+        self.check_res()
+        if self.res_kind == "grounded":
+            return self._grounded.image_side(rgb)
+        return {}
+
+    def res_prompt(self, text: str) -> ResPrompt:
+        """The prompt side's per-prompt work, done once (the tokens; the text encoding)."""
+        self.check_res()
+        if self.res_kind == "grounded":
+            return self._grounded.prompt(text)
+        ids, att = self._res[1].encode(text)
+        return ResPrompt(text, ids, att)
+
+    def res_from_image_side(
+        self,
+        image_side: dict[str, np.ndarray],
+        hw: tuple[int, int],
+        prompt: ResPrompt,
+        rgb: np.ndarray | None = None,
+    ) -> Grounding:
+        """The RES answer from the cached image side, equal to `ground(rgb, prompt.text)`
+        (tested; the float16 image side moves a few pixels at the mask threshold).
+        hw = (H, W) of the original image. Grounding DINO and a whole single RES model run on
+        the image itself and need `rgb`."""
+        self.check_res()
+        hw = (int(hw[0]), int(hw[1]))
+        want = self.res_image_side_spec()
+        for key, (shape, _) in want.items():
+            got = image_side.get(key)
+            if got is None or tuple(got.shape) != shape:
+                found = "missing" if got is None else f"{list(got.shape)}"
+                raise GoiError(
+                    f"{self.where}: the RES image side's '{key}' is {found}, expected "
+                    f"{list(shape)} (an index made with another bundle?)"
+                )
+        if rgb is None:
+            raise GoiError(
+                f"{self.where}: this bundle's RES ({self.res_kind}) runs on the image itself; "
+                "its rgb is needed"
+            )
+        if tuple(rgb.shape[:2]) != hw:
+            raise GoiError(f"rgb is {list(rgb.shape[:2])}, but hw says {list(hw)}")
+        if self.res_kind == "grounded":
+            return self._grounded.from_image_side(image_side, hw, prompt, rgb)
+        return self.ground(rgb, prompt.text)
 
     def segment(self, rgb: np.ndarray, text: str) -> np.ndarray:
         """The RES mask of a prompt on an image: [H, W, 3] uint8 RGB -> [H, W] bool."""

@@ -7,6 +7,16 @@ go to SAM: its encoder (`sam_encoder.onnx`) embeds the image once, its decoder
 (`sam_decoder.onnx`) gives one mask per box, and the union of the masks is the image's RES
 mask. An image where the detector finds nothing gets an empty mask (SAM does not run). The
 pre- and post-processing is `res_processing`'s, the transformers processors' own arithmetic.
+
+The split (docs/models.md, "The RES split"): SAM's image embedding does not depend on the
+prompt, so it is the pipeline's image side (`image_side`), computed once per image and cached
+by the RES index; Grounding DINO's text meets the image in its first layers, so the detector
+stays on the prompt side and needs the image itself.
+
+SAM comes in two layouts (`sam_decoder.layout`): `transformers` (goi's own export of a
+transformers SamModel: boxes in, low-resolution logits out) and `segment-anything` (the layout
+of segment-anything's own ONNX export, which community exports such as MobileSAM's follow:
+point prompts, a box as two points labelled 2 and 3, logits already at the image's size).
 """
 
 from __future__ import annotations
@@ -25,6 +35,22 @@ from stages.models.onnx_io import Tokens, check_inputs_named, check_io, inside, 
 
 #: The models of a grounded pipeline, as manifest keys.
 PARTS = ("detector", "sam_encoder", "sam_decoder")
+#: SAM decoder layouts: goi's export of transformers' SamModel, segment-anything's own.
+SAM_LAYOUTS = ("transformers", "segment-anything")
+#: The tensors of segment-anything's ONNX decoder (scripts/export_onnx_model.py there), fixed
+#: by that layout: inputs, then the output goi reads.
+SA_INPUTS = (
+    "image_embeddings",
+    "point_coords",
+    "point_labels",
+    "mask_input",
+    "has_mask_input",
+    "orig_im_size",
+)
+SA_MASKS = "masks"
+#: The image side's dtype: SAM's embeddings are O(1); float16 keeps them to ~5e-4 relative,
+#: which moves mask logits far less than their threshold margin (tests/models/test_split.py).
+SIDE_DTYPE = "float16"
 
 
 @dataclass
@@ -36,10 +62,22 @@ class Grounding:
     scores: np.ndarray  # [K]
 
 
+@dataclass(frozen=True)
+class ResPrompt:
+    """A prompt's per-prompt work, done once and reused on every image (`Bundle.res_prompt`)."""
+
+    text: str
+    ids: np.ndarray | None = None  # [1, L] int64, the RES tokenizer's ids
+    attention: np.ndarray | None = None  # [1, L] int64
+    embedding: np.ndarray | None = None  # [D] float32, the text side's encoding (OWLv2, CLIPSeg)
+
+
 def _size(spec: dict, key: str, where: str) -> tuple[int, int]:
     """A manifest [width, height] -> (height, width)."""
     v = spec["size"]
-    if len(v) != 2 or not all(isinstance(x, int) and not isinstance(x, bool) for x in v):
+    if not isinstance(v, list) or len(v) != 2:
+        raise GoiError(f"{where}: field '{key}.size' needs [width, height] as two integers")
+    if not all(isinstance(x, int) and not isinstance(x, bool) for x in v):
         raise GoiError(f"{where}: field '{key}.size' needs [width, height] as two integers")
     if min(v) < 16:
         raise GoiError(f"{where}: field '{key}.size' {v} is below 16 pixels")
@@ -49,24 +87,41 @@ def _size(spec: dict, key: str, where: str) -> tuple[int, int]:
 def _stats(spec: dict, key: str, where: str) -> None:
     for stat in ("mean", "std"):
         v = spec[stat]
-        if len(v) != 3 or not all(isinstance(x, int | float) for x in v):
-            raise GoiError(f"{where}: field '{key}.{stat}' needs 3 numbers")
+        ok = isinstance(v, list) and len(v) == 3
+        if not ok or not all(isinstance(x, int | float) and math.isfinite(x) for x in v):
+            raise GoiError(f"{where}: field '{key}.{stat}' needs 3 finite numbers")
     if not all(s > 0 for s in spec["std"]):
         raise GoiError(f"{where}: field '{key}.std' needs positive numbers")
+
+
+def check_sam_spec(root: Path, enc: dict, dec: dict, key: str, where: str) -> None:
+    """A SAM pair's manifest entries (`key`.sam_encoder, `key`.sam_decoder) make sense."""
+    inside(root, enc["file"], f"{where}: {key}.sam_encoder")
+    inside(root, dec["file"], f"{where}: {key}.sam_decoder")
+    h, w = _size(enc, f"{key}.sam_encoder", where)
+    if h != w:
+        raise GoiError(f"{where}: field '{key}.sam_encoder.size' must be square, not {[w, h]}")
+    _stats(enc, f"{key}.sam_encoder", where)
+    layout = dec.get("layout", "transformers")
+    if layout not in SAM_LAYOUTS:
+        raise GoiError(
+            f"{where}: field '{key}.sam_decoder.layout' is {layout!r}, not one of "
+            f"{', '.join(SAM_LAYOUTS)}"
+        )
+    if layout == "transformers":
+        for name in ("image_embeddings", "boxes", "masks"):
+            if not isinstance(dec.get(name), str):
+                raise GoiError(f"{where}: field '{key}.sam_decoder.{name}' is missing")
 
 
 def check_spec(root: Path, spec: dict, where: str) -> None:
     """The manifest's 'grounded' section makes sense and names files that are there (no
     model is loaded)."""
-    for part in PARTS:
-        inside(root, spec[part]["file"], f"{where}: grounded.{part}")
-    det, enc = spec["detector"], spec["sam_encoder"]
+    inside(root, spec["detector"]["file"], f"{where}: grounded.detector")
+    check_sam_spec(root, spec["sam_encoder"], spec["sam_decoder"], "grounded", where)
+    det = spec["detector"]
     _size(det, "grounded.detector", where)
-    h, w = _size(enc, "grounded.sam_encoder", where)
-    if h != w:
-        raise GoiError(f"{where}: field 'grounded.sam_encoder.size' must be square, not {[w, h]}")
     _stats(det, "grounded.detector", where)
-    _stats(enc, "grounded.sam_encoder", where)
     tok = det["tokenizer"]
     if tok["kind"] != "huggingface":
         raise GoiError(f"{where}: tokenizer kind {tok['kind']!r} is not supported (huggingface)")
@@ -79,6 +134,99 @@ def check_spec(root: Path, spec: dict, where: str) -> None:
         raise GoiError(f"{where}: field 'grounded.max_boxes' must be at least 1")
 
 
+class Sam:
+    """SAM's encoder and decoder graphs, in either layout. Opened, with every tensor checked,
+    on first use."""
+
+    def __init__(self, root: Path, enc: dict, dec: dict, key: str, where: str):
+        self.root, self.enc, self.dec, self.key, self.where = root, enc, dec, key, where
+        self.size = _size(enc, f"{key}.sam_encoder", where)[0]
+        self.layout = str(dec.get("layout", "transformers"))
+
+    @cached_property
+    def sessions(self) -> tuple[Any, Any, list[int | str]]:
+        """(encoder, decoder, the embedding's shape [1, C, e, e] as the graphs declare it)."""
+        enc, dec, s = self.enc, self.dec, self.size
+        pe = inside(self.root, enc["file"], f"{self.where}: {self.key}.sam_encoder")
+        pd = inside(self.root, dec["file"], f"{self.where}: {self.key}.sam_decoder")
+        e = session(pe, low_memory=True)
+        check_io(e, pe, "input", enc["input"], 4, {1: 3, 2: s, 3: s})
+        check_inputs_named(e, pe, [enc["input"]])
+        emb = check_io(e, pe, "output", enc["output"], 4)
+        m = session(pd)
+        fixed = {i: v for i, v in enumerate(emb) if isinstance(v, int) and i > 0}
+        if self.layout == "transformers":
+            dec_emb = check_io(m, pd, "input", dec["image_embeddings"], 4, fixed)
+            check_io(m, pd, "input", dec["boxes"], 3, {0: 1, 2: 4})
+            check_inputs_named(m, pd, [dec["image_embeddings"], dec["boxes"]])
+            check_io(m, pd, "output", dec["masks"], 5, {0: 1, 2: 1})
+        else:
+            ranks = dict(zip(SA_INPUTS, (4, 3, 2, 4, 1, 1), strict=True))
+            dec_emb = check_io(m, pd, "input", "image_embeddings", 4, fixed)
+            check_io(m, pd, "input", "point_coords", 3, {2: 2})
+            for name in SA_INPUTS[2:]:
+                check_io(m, pd, "input", name, ranks[name])
+            check_inputs_named(m, pd, list(SA_INPUTS))
+            check_io(m, pd, "output", SA_MASKS, 4)
+            mask_in = check_io(m, pd, "input", "mask_input", 4)
+            e_side = dec_emb[3] if isinstance(dec_emb[3], int) else emb[3]
+            if isinstance(e_side, int) and isinstance(mask_in[3], int) and mask_in[3] != 4 * e_side:
+                raise GoiError(
+                    f"{pd}: input 'mask_input' is {mask_in}, expected 4 x the embedding's "
+                    f"{e_side} cells"
+                )
+        shape = [v if isinstance(v, int) else w for v, w in zip(emb, dec_emb, strict=True)]
+        return e, m, shape
+
+    def embedding_shape(self) -> tuple[int, ...]:
+        """[C, e, e] of the image embedding (one encoder run when the graphs do not say)."""
+        shape = self.sessions[2][1:]
+        if all(isinstance(v, int) for v in shape):
+            return tuple(int(v) for v in shape)  # type: ignore[arg-type]
+        return tuple(self.embed(np.zeros((16, 16, 3), np.uint8)).shape[1:])
+
+    def embed(self, rgb: np.ndarray) -> np.ndarray:
+        """[H, W, 3] uint8 RGB -> the image embedding [1, C, e, e] float32."""
+        e = self.sessions[0]
+        pixels = rp.sam_inputs(rgb, self.size, tuple(self.enc["mean"]), tuple(self.enc["std"]))
+        out: np.ndarray = e.run([self.enc["output"]], {self.enc["input"]: pixels})[0]
+        if out.ndim != 4 or out.shape[0] != 1:
+            raise GoiError(
+                f"{self.root / self.enc['file']}: returned {list(out.shape)}, expected [1, C, e, e]"
+            )
+        return out.astype(np.float32, copy=False)
+
+    def box_logits(self, emb: np.ndarray, box: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+        """One box [4] (x0, y0, x1, y1, pixels of the image) -> SAM's mask logits [H, W]."""
+        m = self.sessions[1]
+        if self.layout == "transformers":
+            feed = {
+                self.dec["image_embeddings"]: emb,
+                self.dec["boxes"]: rp.sam_boxes(box[None], hw, self.size),
+            }
+            low = m.run([self.dec["masks"]], feed)[0]  # [1, 1, 1, s, s] mask logits
+            return rp.sam_mask_logits(low[0, 0, 0], hw, self.size)
+        # segment-anything: the box's corners as two points labelled 2 and 3, no padding point
+        # (SamPredictor with a box); no mask prompt; the graph resizes to orig_im_size itself.
+        coords = rp.sam_boxes(box[None], hw, self.size).reshape(1, 2, 2)
+        e = int(emb.shape[-1])
+        feed = {
+            "image_embeddings": emb,
+            "point_coords": coords,
+            "point_labels": np.asarray([[2, 3]], np.float32),
+            "mask_input": np.zeros((1, 1, 4 * e, 4 * e), np.float32),
+            "has_mask_input": np.zeros(1, np.float32),
+            "orig_im_size": np.asarray(hw, np.float32),
+        }
+        out = m.run([SA_MASKS], feed)[0]  # [1, M, H, W]; M > 1: multimask, the first is SAM's
+        if out.ndim != 4 or out.shape[0] != 1 or tuple(out.shape[2:]) != hw:
+            raise GoiError(
+                f"{self.root / self.dec['file']}: output 'masks' is {list(out.shape)}, expected "
+                f"[1, M, {hw[0]}, {hw[1]}]"
+            )
+        return np.asarray(out[0, 0], np.float32)
+
+
 class GroundedSam:
     """The grounded pipeline of a bundle. The three models are opened, and every tensor the
     manifest names is checked, on the first image, before any of them runs."""
@@ -88,86 +236,94 @@ class GroundedSam:
         self.spec = spec
         self.where = where
         self.canvas = _size(spec["detector"], "grounded.detector", where)
-        self.sam_size = _size(spec["sam_encoder"], "grounded.sam_encoder", where)[0]
+        self.sam = Sam(root, spec["sam_encoder"], spec["sam_decoder"], "grounded", where)
+        self.sam_size = self.sam.size
 
     @cached_property
-    def _models(self) -> tuple[Any, Any, Any, Tokens]:
-        det, enc, dec = (self.spec[p] for p in PARTS)
-        paths = [
-            inside(self.root, s["file"], f"{self.where}: grounded.{p}")
-            for p, s in zip(PARTS, (det, enc, dec), strict=True)
-        ]
+    def _detector(self) -> tuple[Any, Tokens]:
+        det = self.spec["detector"]
+        path = inside(self.root, det["file"], f"{self.where}: grounded.detector")
         tok = det["tokenizer"]
         where = f"{self.where}: grounded.detector.tokenizer"
         tokens = Tokens(inside(self.root, tok["file"], where), int(tok["max_length"]), where)
-        d = session(paths[0], low_memory=True)
+        d = session(path, low_memory=True)
         ch, cw = self.canvas
-        check_io(d, paths[0], "input", det["pixel_values"], 4, {0: 1, 1: 3, 2: ch, 3: cw})
-        check_io(d, paths[0], "input", det["pixel_mask"], 3, {0: 1, 1: ch, 2: cw})
+        check_io(d, path, "input", det["pixel_values"], 4, {0: 1, 1: 3, 2: ch, 3: cw})
+        check_io(d, path, "input", det["pixel_mask"], 3, {0: 1, 1: ch, 2: cw})
         text = [det["input_ids"], det["attention_mask"]]
         text += [det["token_type_ids"]] if det.get("token_type_ids") else []
         for name in text:
-            check_io(d, paths[0], "input", name, 2, {0: 1})
-        check_inputs_named(d, paths[0], [det["pixel_values"], det["pixel_mask"], *text])
-        check_io(d, paths[0], "output", det["logits"], 3, {0: 1})
-        check_io(d, paths[0], "output", det["boxes"], 3, {0: 1, 2: 4})
-        s = self.sam_size
-        e = session(paths[1], low_memory=True)
-        check_io(e, paths[1], "input", enc["input"], 4, {0: 1, 1: 3, 2: s, 3: s})
-        emb = check_io(e, paths[1], "output", enc["output"], 4, {0: 1})
-        m = session(paths[2])
-        fixed = {i: v for i, v in enumerate(emb) if isinstance(v, int)}
-        check_io(m, paths[2], "input", dec["image_embeddings"], 4, fixed)
-        check_io(m, paths[2], "input", dec["boxes"], 3, {0: 1, 2: 4})
-        check_inputs_named(m, paths[2], [dec["image_embeddings"], dec["boxes"]])
-        check_io(m, paths[2], "output", dec["masks"], 5, {0: 1, 2: 1})
-        return d, e, m, tokens
+            check_io(d, path, "input", name, 2, {0: 1})
+        check_inputs_named(d, path, [det["pixel_values"], det["pixel_mask"], *text])
+        check_io(d, path, "output", det["logits"], 3, {0: 1})
+        check_io(d, path, "output", det["boxes"], 3, {0: 1, 2: 4})
+        return d, tokens
 
     def check(self) -> None:
         """Open the models and check their tensors (done anyway on the first image)."""
-        _ = self._models
+        _ = self._detector
+        _ = self.sam.sessions
 
-    def detect(self, rgb: np.ndarray, prompt: str) -> tuple[np.ndarray, np.ndarray]:
+    def prompt(self, text: str) -> ResPrompt:
+        """The prompt's detector tokens (its caption form), once."""
+        ids, att = self._detector[1].encode(rp.detector_caption(text))
+        return ResPrompt(text, ids, att)
+
+    def detect(self, rgb: np.ndarray, prompt: str | ResPrompt) -> tuple[np.ndarray, np.ndarray]:
         """The kept boxes [K, 4] (pixels of `rgb`) and their scores [K], best first."""
-        d, _, _, tokens = self._models
+        d, _ = self._detector
+        p = self.prompt(prompt) if isinstance(prompt, str) else prompt
+        assert p.ids is not None and p.attention is not None
         det = self.spec["detector"]
-        ids, att = tokens.encode(rp.detector_caption(prompt))
         pixels, pmask = rp.detector_inputs(rgb, self.canvas, tuple(det["mean"]), tuple(det["std"]))
         feed = {
             det["pixel_values"]: pixels,
             det["pixel_mask"]: pmask,
-            det["input_ids"]: ids,
-            det["attention_mask"]: att,
+            det["input_ids"]: p.ids,
+            det["attention_mask"]: p.attention,
         }
         if det.get("token_type_ids"):
-            feed[det["token_type_ids"]] = np.zeros_like(ids)
+            feed[det["token_type_ids"]] = np.zeros_like(p.ids)
         logits, boxes = d.run([det["logits"], det["boxes"]], feed)
-        if logits.shape[-1] != ids.shape[1] or boxes.shape[:2] != logits.shape[:2]:
+        if logits.shape[-1] != p.ids.shape[1] or boxes.shape[:2] != logits.shape[:2]:
             raise GoiError(
                 f"{self.root / det['file']}: returned logits {list(logits.shape)} and boxes "
-                f"{list(boxes.shape)} for {ids.shape[1]} tokens; expected [1, Q, "
-                f"{ids.shape[1]}] and [1, Q, 4]"
+                f"{list(boxes.shape)} for {p.ids.shape[1]} tokens; expected [1, Q, "
+                f"{p.ids.shape[1]}] and [1, Q, 4]"
             )
         thr, k = float(self.spec["box_threshold"]), int(self.spec["max_boxes"])
         return rp.detections(logits[0], boxes[0], rgb.shape[:2], thr, k)
+
+    def masks(
+        self, emb: np.ndarray, boxes: np.ndarray, scores: np.ndarray, hw: tuple[int, int]
+    ) -> Grounding:
+        """The union of SAM's masks of `boxes` [K, 4] on the image embedded as `emb`."""
+        mask = np.zeros(hw, bool)
+        thr = float(self.spec["mask_threshold"])
+        for box in boxes:
+            mask |= self.sam.box_logits(emb, box, hw) > thr
+        return Grounding(mask, boxes, scores)
+
+    def image_side_spec(self) -> dict[str, tuple[tuple[int, ...], str]]:
+        return {"sam_embedding": (self.sam.embedding_shape(), SIDE_DTYPE)}
+
+    def image_side(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
+        """SAM's image embedding [C, e, e], stored as float16."""
+        return {"sam_embedding": self.sam.embed(rgb)[0].astype(SIDE_DTYPE)}
+
+    def from_image_side(
+        self, side: dict[str, np.ndarray], hw: tuple[int, int], prompt: ResPrompt, rgb: np.ndarray
+    ) -> Grounding:
+        boxes, scores = self.detect(rgb, prompt)
+        if len(boxes) == 0:
+            return Grounding(np.zeros(hw, bool), boxes, scores)
+        emb = np.asarray(side["sam_embedding"], np.float32)[None]
+        return self.masks(emb, boxes, scores, hw)
 
     def run(self, rgb: np.ndarray, prompt: str) -> Grounding:
         """[H, W, 3] uint8 RGB and a prompt -> the RES mask and the boxes it came from."""
         boxes, scores = self.detect(rgb, prompt)
         hw = (int(rgb.shape[0]), int(rgb.shape[1]))
-        mask = np.zeros(hw, bool)
         if len(boxes) == 0:
-            return Grounding(mask, boxes, scores)
-        _, e, m, _ = self._models
-        enc, dec = self.spec["sam_encoder"], self.spec["sam_decoder"]
-        pixels = rp.sam_inputs(rgb, self.sam_size, tuple(enc["mean"]), tuple(enc["std"]))
-        emb = e.run([enc["output"]], {enc["input"]: pixels})[0]
-        thr = float(self.spec["mask_threshold"])
-        for box in boxes:
-            feed = {
-                dec["image_embeddings"]: emb,
-                dec["boxes"]: rp.sam_boxes(box[None], hw, self.sam_size),
-            }
-            low = m.run([dec["masks"]], feed)[0]  # [1, 1, 1, s, s] mask logits
-            mask |= rp.sam_mask_logits(low[0, 0, 0], hw, self.sam_size) > thr
-        return Grounding(mask, boxes, scores)
+            return Grounding(np.zeros(hw, bool), boxes, scores)
+        return self.masks(self.sam.embed(rgb), boxes, scores, hw)

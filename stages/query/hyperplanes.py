@@ -24,7 +24,7 @@ from stages.core.params import check_params
 from stages.core.report import SILENT, Report
 from stages.query.osh import Counts, Hyperplane, HyperplaneParams, count_pixels, fit_osh
 from stages.query.prompts import safe_name
-from stages.query.res import ResModel, ResSource, choose_views, write_res_masks
+from stages.query.res import ResIndexed, ResModel, ResSource, choose_views, write_res_masks
 from stages.scene.cameras import Camera
 from stages.semantics.decode import SemanticRenderer
 
@@ -48,7 +48,7 @@ def res_masks_dir(out: Path, prompt: str) -> Path:
 
 def wrote_res_masks(masks: ResSource, cached: bool) -> bool:
     """Whether a fit wrote RES masks: it ran a model (a cached plane needs none)."""
-    return isinstance(masks, ResModel) and not cached
+    return isinstance(masks, ResModel | ResIndexed) and not cached
 
 
 def field_key(field_path: Path) -> str:

@@ -9,6 +9,12 @@ per-view RES errors), or K of them with --res-views K; when a RES model has to r
 (8 by default) are chosen one at a time to cover the provisional selection from different sides
 (`stages.query.views`), and the selection is updated after each, so the next view looks where
 the answer still lacks evidence. The math is in `stages.query.lifting`.
+
+Without a semantic field (`lift_prompt` given a bare Rasterizer: the field-free mode, the
+training-free route of FlashSplat and Seed2GS) the vote alone decides: a Gaussian is in when its
+own evidence says so, and one with less than `min_evidence` (which no view's evidence reaches)
+stays out, since there is no codebook entry or OSH to decide it. No feature model, codebook or
+fit-field is needed, and no text embedding: the RES masks carry the prompt.
 """
 
 from __future__ import annotations
@@ -41,9 +47,12 @@ from stages.semantics.field import Field
 
 
 class MaskSource(Protocol):
-    """Where RES masks come from (stages.query.res): files, a model, or a stand-in for one."""
+    """Where RES masks come from (stages.query.res): files, a model, or a stand-in for one.
+    `every_view`: a mask costs little (a file, or the prompt side on an indexed view), so the
+    lifted mode lifts every available view by default instead of choosing K."""
 
     source: str
+    every_view: bool
 
     def available(self, cams: list[Camera]) -> list[Camera]: ...
 
@@ -53,7 +62,7 @@ class MaskSource(Protocol):
 @dataclass
 class LiftedAnswer:
     lifted: Lifted
-    plane: Hyperplane  # the OSH fitted on the lifted evidence (decides unseen entries)
+    plane: Hyperplane | None  # the OSH fitted on the lifted evidence (None without a field)
     evidence: list[ViewEvidence]
     chosen_by: str  # "all mask files", "K of the mask files", "coverage (RES model)"
 
@@ -73,6 +82,7 @@ class LiftedAnswer:
             "views": self.views,
             "chosen_by": self.chosen_by,
             "params": lp.config(),
+            "semantics": "field" if self.plane is not None else "none (field-free)",
             "per_view": [
                 {**e.summary(), "confidence": lf.confidence[e.view]} for e in self.evidence
             ],
@@ -116,16 +126,21 @@ def fit_lifted_plane(
 
 def _answer(
     evidence: list[ViewEvidence],
-    field: Field,
+    field: Field | None,
     entry: np.ndarray,
     prompt: str,
-    text: np.ndarray,
+    text: np.ndarray | None,
     hp: HyperplaneParams,
     lp: LiftParams,
     chosen_by: str,
 ) -> LiftedAnswer:
     """Vote, fit the OSH on the vote's evidence, and decide with it (a second fuse: the plane
-    only changes what unseen entries do, the votes are the same)."""
+    only changes what unseen entries do, the votes are the same). Without a field the vote
+    alone decides: no Gaussian is 'seen' by a field, so the ones below min_evidence are out."""
+    if field is None or text is None:
+        unseen = np.zeros(entry.shape, bool)
+        lifted = fuse(evidence, entry, unseen, np.zeros(1, bool), lp)
+        return LiftedAnswer(lifted, None, evidence, chosen_by)
     seen = field.seen
     text_plane = threshold_plane(prompt, text, field.unit_codebook(), hp.threshold)
     first = fuse(evidence, entry, seen, text_plane.positive, lp)
@@ -135,20 +150,26 @@ def _answer(
 
 
 def lift_prompt(
-    renderer: SemanticRenderer,
+    renderer: SemanticRenderer | Rasterizer,
     train: list[Camera],
     source: MaskSource,
     prompt: str,
-    text: np.ndarray,
+    text: np.ndarray | None,
     hp: HyperplaneParams,
     lp: LiftParams,
     visibility: Callable[[Camera], np.ndarray] | None = None,
     report: Report = SILENT,
 ) -> LiftedAnswer:
-    """The lifted answer of one prompt (see the module doc). `visibility` may give a cached
-    view_visibility (the eval shares it between prompts)."""
+    """The lifted answer of one prompt (see the module doc). A bare Rasterizer (and text None)
+    gives the field-free answer. `visibility` may give a cached view_visibility (the eval shares
+    it between prompts)."""
     check_params(lp)
-    rast, field = renderer.rast, renderer.field
+    if isinstance(renderer, Rasterizer):
+        rast, field = renderer, None
+    else:
+        rast, field = renderer.rast, renderer.field
+    if field is not None and text is None:
+        raise GoiError("the lifted mode with a field needs the prompt's text embedding")
     if lp.res_views is not None and lp.res_views > len(train):
         raise GoiError(
             f"--res-views: {lp.res_views} is more than the scene's {len(train)} training views"
@@ -159,24 +180,37 @@ def lift_prompt(
             f"--res-masks: {source.source} holds masks for none of the {len(train)} training "
             f"views (e.g. {train[0].name}.png): do the masks belong to this scene?"
         )
-    # [G] each Gaussian's codebook entry, by the renderer's kernel: field.decode_index would
-    # build the [G, N] logits (360 MB for 300k Gaussians and 300 entries)
-    entry = renderer.decode(field.features)
+    if field is None:
+        entry = np.zeros(
+            rast.means.shape[0], np.int32
+        )  # no codebook: one entry no Gaussian is seen in
+    else:
+        # [G] each Gaussian's codebook entry, by the renderer's kernel: field.decode_index would
+        # build the [G, N] logits (360 MB for 300k Gaussians and 300 entries)
+        assert isinstance(renderer, SemanticRenderer)
+        entry = renderer.decode(field.features)
     files = isinstance(source, ResFiles)
-    if files and lp.res_views is None:
+    if source.every_view and lp.res_views is None:
         evidence = [
             view_evidence(rast, c, source.mask(c))
             for c in report.progress(pool, "lift", show=_name)
         ]
-        return _answer(evidence, field, entry, prompt, text, hp, lp, "all mask files")
+        everything = "all mask files" if files else f"every indexed view ({source.source})"
+        lifted_all = _answer(evidence, field, entry, prompt, text, hp, lp, everything)
+        return _found_nothing(lifted_all, source, prompt)
     k = lp.res_views or DEFAULT_MODEL_VIEWS
     if k > len(pool):
         warn(f"--res-views {k}: only {len(pool)} views have RES masks; lifting all of them")
         k = len(pool)
     vis_of = visibility or (lambda c: view_visibility(rast, c))
     vis = [vis_of(c) for c in report.progress(pool, "visibility", show=_name)]
-    unit = field.unit_codebook().astype(np.float64)
-    S = provisional(unit @ text.astype(np.float64) - hp.threshold, entry, field.seen)
+    if field is None or text is None:
+        # nothing to aim at before the first mask: the first view is the one that covers the
+        # most of the scene, then the views cover the selection the masks build up
+        S = np.ones(entry.shape, bool)
+    else:
+        unit = field.unit_codebook().astype(np.float64)
+        S = provisional(unit @ text.astype(np.float64) - hp.threshold, entry, field.seen)
     E = np.zeros(entry.shape[0])
     left = list(range(len(pool)))
     chosen: list[ViewEvidence] = []
@@ -191,6 +225,19 @@ def lift_prompt(
         if answer.selected.any():
             S = answer.selected
     assert answer is not None  # k >= 1
+    return _found_nothing(answer, source, prompt)
+
+
+def _found_nothing(answer: LiftedAnswer, source: MaskSource, prompt: str) -> LiftedAnswer:
+    """When every view's RES mask is empty (the detector found nothing anywhere), the answer is
+    empty, with a warning: not an error, and not the field's guess from the text alone."""
+    if any(not e.empty for e in answer.evidence):
+        return answer
+    warn(
+        f"{source.source}: the RES found nothing for '{prompt}' on any of the "
+        f"{len(answer.evidence)} views; the answer is empty"
+    )
+    answer.lifted.selected = np.zeros_like(answer.lifted.selected)
     return answer
 
 

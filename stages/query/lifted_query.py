@@ -20,6 +20,7 @@ from stages.query.masks import overlay
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import view_file_name
 from stages.query.selection import write_selection
+from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 from stages.semantics.decode import SemanticRenderer
@@ -27,9 +28,9 @@ from stages.semantics.decode import SemanticRenderer
 
 def answer_prompt(
     scene: Scene,
-    renderer: SemanticRenderer,
+    renderer: SemanticRenderer | Rasterizer,
     prompt: str,
-    text: np.ndarray,
+    text: np.ndarray | None,
     source: MaskSource,
     hp: HyperplaneParams,
     lp: LiftParams,
@@ -42,10 +43,14 @@ def answer_prompt(
     if need_positive:
         require_positive_evidence(ans, source.source)
     rec = ans.record(lp)
+    by_field = (
+        f", {rec['n_selected_by_semantics']} by the field"
+        if ans.plane is not None
+        else " (field-free: the Gaussians no view's evidence reaches are out)"
+    )
     report.log(
         f"lifted {len(rec['views'])} views ({rec['chosen_by']}): {int(ans.selected.sum())} "
-        f"Gaussians, {rec['n_selected_by_masks']} decided by the masks, "
-        f"{rec['n_selected_by_semantics']} by the field"
+        f"Gaussians, {rec['n_selected_by_masks']} decided by the masks{by_field}"
     )
     return ans
 
@@ -63,7 +68,7 @@ def require_positive_evidence(ans: LiftedAnswer, source: object) -> None:
 
 
 def write_masks(
-    renderer: SemanticRenderer,
+    rast: Rasterizer,
     selected: np.ndarray,
     cams: list[Camera],
     out: Path,
@@ -75,11 +80,11 @@ def write_masks(
     make_dir(out, "--out")
     written = []
     for cam in report.progress(cams, "render-mask", show=lambda c: c.name if c else None):
-        m = lifted_masks(renderer.rast, selected, [cam])[cam.name]
+        m = lifted_masks(rast, selected, [cam])[cam.name]
         stem = view_file_name(cam.name)
         write_png(out / f"{stem}.png", m.astype(np.uint8) * 255, force)
         if overlays:
-            rgb = renderer.rast.render_rgb(cam).image
+            rgb = rast.render_rgb(cam).image
             write_png(out / f"{stem}.overlay.png", overlay(rgb, m), force)
         written.append(out / f"{stem}.png")
     return written
@@ -89,21 +94,27 @@ def write_lifted_selection(
     path: Path,
     ans: LiftedAnswer,
     scene: Scene,
-    field_path: Path,
+    field_path: Path | None,
     lp: LiftParams,
     force: bool,
+    prompt: str,
 ) -> Path:
-    """The selection artifact of a lifted answer: the views and evidence go with it."""
-    inputs = {"ply": scene.ply_digest(), **input_digest("field", field_path)}
-    plane = ans.plane
+    """The selection artifact of a lifted answer: the views and evidence go with it (and the
+    field's digest and the OSH's fit record, when a field took part)."""
+    inputs = {"ply": scene.ply_digest()}
+    record = ans.record(lp)
+    if field_path is not None:
+        inputs.update(input_digest("field", field_path))
+    if ans.plane is not None:
+        record["plane"] = json.loads(json.dumps(ans.plane.info, default=float))
     return write_selection(
         path,
         ans.selected,
-        plane,
+        prompt,
         "lifted",
         scene.ply_digest(),
         inputs,
         force,
-        lifted={**ans.record(lp), "plane": json.loads(json.dumps(plane.info, default=float))},
+        lifted=record,
         evidence=(ans.lifted.S1, ans.lifted.S0),
     )

@@ -15,6 +15,7 @@ from typing import Annotated
 import numpy as np
 
 from stages.core.artifacts import input_digest
+from stages.core.errors import GoiError, warn
 from stages.core.files import check_output_file, make_dir, refuse_inputs
 from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
@@ -31,8 +32,9 @@ from stages.query.masks import (
 )
 from stages.query.osh import HyperplaneParams, threshold_plane
 from stages.query.prompts import check_prompt, safe_name, text_embedding
-from stages.query.res import res_source
+from stages.query.res import NothingFound, res_source
 from stages.query.selection import Selection, select, write_selection
+from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 from stages.semantics.decode import SemanticRenderer
@@ -56,6 +58,10 @@ class PromptSources:
     (default subdirectory: the prompt's safe name)."""
     prompt_id: str | None = None
     """Subdirectory of --res-masks holding this prompt's masks."""
+    res_index: Path | None = None
+    """RES index of the scene (goi index-res) made with --bundle: only the bundle's prompt
+    side runs (seconds for every training view), on the scene's photos; --lift then lifts
+    every indexed view by default."""
 
 
 @dataclass
@@ -94,7 +100,7 @@ class QueryResult:
 
 def _check_outputs(
     scene: Scene,
-    field_path: Path,
+    field_path: Path | None,
     prompt: str,
     sources: PromptSources,
     run: QueryRun,
@@ -109,6 +115,7 @@ def _check_outputs(
         sources.text_embeddings,
         sources.bundle,
         sources.res_masks,
+        sources.res_index,
     ]
     pdir = Path(run.out) / safe_name(prompt)
     check_mask_outputs(pdir / "masks", cams, True, True, inputs)
@@ -122,7 +129,7 @@ def _check_outputs(
 
 def run_query(
     scene: Scene,
-    field_path: Path,
+    field_path: Path | None,
     prompt: str,
     sources: PromptSources,
     hp: HyperplaneParams,
@@ -132,11 +139,22 @@ def run_query(
     report: Report = SILENT,
     lp: LiftParams | None = None,
 ) -> QueryResult:
+    """The query of one prompt. field_path None (with --lift) is the field-free lifted mode."""
     prompt = check_prompt(prompt)
     lp = lp or LiftParams()
     for params in (hp, qp, run, lp):
         check_params(params)
     lp.check(hp)
+    if field_path is None and renderer is None:
+        check_field_free(lp, sources)
+        rast = Rasterizer.from_gaussians(scene.gaussians)
+        cams = default_cameras(scene, run.views)
+        if run.export == "highlight":
+            parse_color(run.color, "--color")
+        _check_outputs(scene, None, prompt, sources, run, cams)
+        make_dir(run.out, "--out")
+        return _run_lifted(scene, None, prompt, None, sources, hp, lp, run, cams, rast, report)
+    assert field_path is not None
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
     text, text_source = text_embedding(
@@ -153,19 +171,31 @@ def run_query(
         )
     res_dir = None
     if qp.mode == "hyperplane":
-        masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
-        plane, cached = fit_hyperplane(
-            renderer,
-            field_path,
-            scene.views("train"),
+        masks = res_source(
+            sources.res_masks,
+            sources.bundle,
+            sources.prompt_id,
             prompt,
-            text,
-            text_source,
-            masks,
-            hp,
-            HyperplaneRun(out / "hyperplanes.h5", refit=run.refit),
-            report,
+            renderer.rast,
+            sources.res_index,
+            scene,
         )
+        try:
+            plane, cached = fit_hyperplane(
+                renderer,
+                field_path,
+                scene.views("train"),
+                prompt,
+                text,
+                text_source,
+                masks,
+                hp,
+                HyperplaneRun(out / "hyperplanes.h5", refit=run.refit),
+                report,
+            )
+        except NothingFound as e:
+            warn(f"{e}: the answer is empty")
+            return _empty_answer(scene, field_path, prompt, qp, run, cams, renderer, report)
         if wrote_res_masks(masks, cached):
             res_dir = res_masks_dir(out / "hyperplanes.h5", prompt)
     else:
@@ -178,7 +208,7 @@ def run_query(
     sel = select(field, plane)
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field_path)}
     sel_path = write_selection(
-        pdir / "selection.h5", sel, plane, qp.mode, scene.ply_digest(), inputs, force=True
+        pdir / "selection.h5", sel, plane.prompt, qp.mode, scene.ply_digest(), inputs, force=True
     )
     ply = _export(scene, sel, prompt, qp.mode, run, pdir)
     n = int(sel.sum())
@@ -186,27 +216,76 @@ def run_query(
     return QueryResult(prompt, pdir, cached, masks_written, sel_path, ply, n, info, res_dir)
 
 
-def _run_lifted(
+def _empty_answer(
     scene: Scene,
     field_path: Path,
     prompt: str,
-    text: np.ndarray,
-    sources: PromptSources,
-    hp: HyperplaneParams,
-    lp: LiftParams,
+    qp: QueryParams,
     run: QueryRun,
     cams: list[Camera],
     renderer: SemanticRenderer,
     report: Report,
 ) -> QueryResult:
-    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lifted)."""
+    """The RES found nothing on any view: empty masks (with overlays), an empty selection."""
+    from stages.query.lifted_query import write_masks
+
+    pdir = Path(run.out) / safe_name(prompt)
+    none = np.zeros(scene.gaussians.count, bool)
+    written = write_masks(renderer.rast, none, cams, pdir / "masks", True, True, report)
+    inputs = {"ply": scene.ply_digest(), **input_digest("field", field_path)}
+    sel_path = write_selection(
+        pdir / "selection.h5", none, prompt, qp.mode, scene.ply_digest(), inputs, force=True
+    )
+    ply = _export(scene, none, prompt, qp.mode, run, pdir)
+    return QueryResult(prompt, pdir, False, written, sel_path, ply, 0, {"res": "found nothing"})
+
+
+def check_field_free(lp: LiftParams, sources: PromptSources) -> None:
+    """Without --field only the lifted mode answers, from a RES source."""
+    if not lp.lift:
+        raise GoiError(
+            "--field is needed (or --lift with --res-masks or a bundle's RES: the field-free "
+            "lifted mode)"
+        )
+    if sources.res_index is not None and sources.bundle is None:
+        raise GoiError(
+            "--res-index needs --bundle DIR: the bundle the index was made with runs the "
+            "prompt side"
+        )
+    if sources.res_masks is None and sources.bundle is None:
+        raise GoiError(
+            "--lift without --field answers from RES masks alone: give --res-masks DIR, "
+            "--bundle DIR (a bundle with a RES) or --res-index FILE with its --bundle"
+        )
+
+
+def _run_lifted(
+    scene: Scene,
+    field_path: Path | None,
+    prompt: str,
+    text: np.ndarray | None,
+    sources: PromptSources,
+    hp: HyperplaneParams,
+    lp: LiftParams,
+    run: QueryRun,
+    cams: list[Camera],
+    renderer: SemanticRenderer | Rasterizer,
+    report: Report,
+) -> QueryResult:
+    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lifted);
+    a bare Rasterizer (no field) gives the field-free answer."""
     from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
 
-    masks = res_source(sources.res_masks, sources.bundle, sources.prompt_id, prompt, renderer)
+    rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
+    masks = res_source(
+        sources.res_masks, sources.bundle, sources.prompt_id, prompt, rast, sources.res_index, scene
+    )
     ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, report)
     pdir = Path(run.out) / safe_name(prompt)
-    written = write_masks(renderer, ans.selected, cams, pdir / "masks", True, True, report)
-    sel_path = write_lifted_selection(pdir / "selection.h5", ans, scene, field_path, lp, True)
+    written = write_masks(rast, ans.selected, cams, pdir / "masks", True, True, report)
+    sel_path = write_lifted_selection(
+        pdir / "selection.h5", ans, scene, field_path, lp, True, prompt
+    )
     ply = _export(scene, ans.selected, prompt, "lifted", run, pdir)
     info = {"views": ans.views, "chosen_by": ans.chosen_by}
     return QueryResult(prompt, pdir, False, written, sel_path, ply, int(ans.selected.sum()), info)

@@ -20,13 +20,22 @@ from stages.core.files import make_dir
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import check_plain_name, safe_name, view_file_name
+from stages.query.res_index import ResIndex, check_res_index, indexable_bundle, load_res_index
+from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
-from stages.semantics.decode import SemanticRenderer
+from stages.scene.scene import Scene
+
+
+class NothingFound(GoiError):
+    """Every RES mask of the prompt is empty (the detector found nothing): a query answers
+    with an empty selection and a warning; fitting a plane alone is refused."""
 
 
 class ResFiles:
     """RES masks made by any external tool: DIR/<view>.png (a prompt's own directory)."""
+
+    every_view = True  # a file costs nothing: the lifted mode lifts them all by default
 
     def __init__(self, root: Path, prompt_id: str | None, prompt: str):
         root = Path(root)
@@ -78,7 +87,9 @@ class ResModel:
     pipeline), run on the RGB goi renders at each view. Each view's mask is computed once;
     `computed` keeps them, so the masks a fit used can be written beside its outputs."""
 
-    def __init__(self, bundle_dir: Path | Bundle, prompt: str, renderer: SemanticRenderer):
+    every_view = False  # seconds per view: the lifted mode chooses K views
+
+    def __init__(self, bundle_dir: Path | Bundle, prompt: str, rast: Rasterizer):
         # a loaded Bundle lets several prompts share one set of sessions (goi eval)
         self.bundle = bundle_dir if isinstance(bundle_dir, Bundle) else load_bundle(bundle_dir)
         if not self.bundle.has_res:
@@ -87,7 +98,7 @@ class ResModel:
                 "DIR instead"
             )
         self.prompt = prompt
-        self.renderer = renderer
+        self.rast = rast
         self.source = f"bundle:{self.bundle.name}"
         self.computed: dict[str, np.ndarray] = {}
 
@@ -97,7 +108,7 @@ class ResModel:
     def mask(self, cam: Camera) -> np.ndarray:
         if cam.name not in self.computed:
             self.bundle.check_res()  # every model opened and checked before any work
-            rgb = self.renderer.rast.render_rgb(cam).image
+            rgb = self.rast.render_rgb(cam).image
             rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
             self.computed[cam.name] = self.bundle.segment(rgb8, self.prompt)
         return self.computed[cam.name]
@@ -108,13 +119,76 @@ class ResModel:
         ).hexdigest()
 
 
-ResSource = ResFiles | ResModel
+class ResIndexed:
+    """RES masks from a bundle's prompt side on a RES index (stages.query.res_index): the
+    prompt is encoded once, then each view costs the prompt side alone (a dot product and SAM's
+    decoder) on the image side stored for the scene's photo. Cheap, so the lifted mode lifts
+    every indexed view by default. Masks are kept in `computed`, like ResModel's."""
+
+    every_view = True
+
+    def __init__(self, index: ResIndex, bundle: Bundle, prompt: str, scene: Scene):
+        self.index = index
+        self.bundle = bundle
+        self.prompt = prompt
+        self.scene = scene
+        self.source = f"index:{index.path} ({bundle.name})"
+        self.computed: dict[str, np.ndarray] = {}
+        self._prompt = bundle.res_prompt(prompt)  # the text side, once per prompt
+
+    def available(self, cams: list[Camera]) -> list[Camera]:
+        return [c for c in cams if c.name in self.index.views]
+
+    def mask(self, cam: Camera) -> np.ndarray:
+        if cam.name not in self.computed:
+            # Grounding DINO meets the text early: its bundles also need the photo itself
+            rgb = self.scene.load_image(cam) if self.bundle.res_kind == "grounded" else None
+            side = self.index.image_side(cam.name)
+            g = self.bundle.res_from_image_side(side, (cam.height, cam.width), self._prompt, rgb)
+            self.computed[cam.name] = g.mask
+        return self.computed[cam.name]
+
+    def digest(self, cams: list[Camera]) -> str:
+        return hashlib.sha256(
+            (
+                self.index.bundle_sha256
+                + self.prompt
+                + ",".join(f"{c.name}:{self.index.views.get(c.name, '')}" for c in cams)
+            ).encode()
+        ).hexdigest()
+
+
+def checked_index(
+    path: Path, bundle: Path | Bundle | None, scene: Scene
+) -> tuple[ResIndex, Bundle]:
+    """--res-index and its --bundle, checked against the scene's training views (bundle,
+    scene, image set, missing views) before any work."""
+    if bundle is None:
+        raise GoiError(
+            "--res-index needs --bundle DIR: the bundle the index was made with runs the "
+            "prompt side"
+        )
+    b = indexable_bundle(bundle)
+    index = load_res_index(path)
+    check_res_index(index, scene, b, scene.views("train"))
+    return index, b
+
+
+def open_res_index(
+    path: Path, bundle: Path | Bundle | None, scene: Scene, prompt: str
+) -> ResIndexed:
+    """The prompt's masks from a checked --res-index (see checked_index)."""
+    index, b = checked_index(path, bundle, scene)
+    return ResIndexed(index, b, prompt, scene)
+
+
+ResSource = ResFiles | ResModel | ResIndexed
 
 
 def write_res_masks(source: ResSource, views: list[str], directory: Path) -> list[Path]:
     """The masks a RES model made for `views`, as directory/<view>.png (0/255), so the user can
     see what a plane was fitted on. Mask files given with --res-masks are not copied."""
-    if not isinstance(source, ResModel):
+    if not isinstance(source, ResModel | ResIndexed):
         return []
     make_dir(directory, "--out")
     written = []
@@ -130,13 +204,21 @@ def res_source(
     bundle: Path | None,
     prompt_id: str | None,
     prompt: str,
-    renderer: SemanticRenderer,
+    rast: Rasterizer,
+    res_index: Path | None = None,
+    scene: Scene | None = None,
 ) -> ResSource:
-    """Mask files when given, else the bundle's RES model; one of them is needed."""
+    """Mask files when given, else the bundle's prompt side on a RES index (with the scene),
+    else the bundle's RES model (run on rast's renderings); one of them is needed."""
+    if res_masks is not None and res_index is not None:
+        raise GoiError("give one of --res-masks DIR or --res-index FILE, not both")
     if res_masks is not None:
         return ResFiles(res_masks, prompt_id, prompt)
+    if res_index is not None:
+        assert scene is not None
+        return open_res_index(res_index, bundle, scene, prompt)
     if bundle is not None:
-        return ResModel(bundle, prompt, renderer)
+        return ResModel(bundle, prompt, rast)
     raise GoiError(
         "fitting a hyperplane needs RES masks: --res-masks DIR, or --bundle DIR with a RES "
         "(res or grounded; or use --mode threshold where there is one)"
@@ -173,13 +255,15 @@ def choose_views(
             f"--res-masks: {source.source.removeprefix('files:')} has no mask for any training "
             f"view (<view>.png for {names})"
         )
-    if isinstance(source, ResModel):
+    if isinstance(source, ResModel):  # (an index costs little: every view is tried)
         # a model costs a run per view: try evenly spaced views until enough are non-empty
         step = max(1, len(pool) // (3 * p.fit_views))
         pool = pool[::step][: 3 * p.fit_views]
     masks = [(c, source.mask(c)) for c in pool]
     masks = [(c, m) for c, m in masks if m.any()]
     if not masks:
-        raise GoiError(f"{source.source}: every RES mask of this prompt is empty; nothing to fit")
+        raise NothingFound(
+            f"{source.source}: every RES mask of this prompt is empty; nothing to fit"
+        )
     masks.sort(key=lambda cm: (-int(cm[1].sum()), cm[0].name))
     return masks[: p.fit_views]

@@ -40,7 +40,7 @@ class Selection:
 def write_selection(
     path: Path,
     sel: np.ndarray,
-    plane: Hyperplane,
+    prompt: str,
     mode: str,
     ply_sha: str,
     inputs: dict,
@@ -50,7 +50,7 @@ def write_selection(
 ) -> Path:
     """`lifted` (a JSON-able record) and `evidence` (S1, S0 [G]) for a lifted selection."""
     with write_h5(path, SCHEMA, inputs, force) as f:
-        f.attrs["prompt"] = plane.prompt
+        f.attrs["prompt"] = prompt
         f.attrs["mode"] = mode
         f.attrs["n_gaussians"] = int(sel.size)
         f.attrs["n_selected"] = int(sel.sum())

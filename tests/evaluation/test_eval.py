@@ -51,9 +51,12 @@ def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
     assert main(argv) == 0
     r = json.loads(out.read_text())
     validate_json(r, "goi.eval", str(out))
-    assert set(r["variants"]) == {"full", "without_osh", "without_tfcc", "baseline", "lifted"}
+    assert set(r["variants"]) == {
+        "full", "without_osh", "without_tfcc", "baseline", "lifted", "lifted_fieldless"
+    }  # fmt: skip
     assert r["lifted"]["res_views"] == "all mask files" and r["lifted"]["min_evidence"] == 1.0
     assert r["variants"]["lifted"]["miou"] >= 0.7
+    assert r["variants"]["lifted_fieldless"]["miou"] >= 0.7
     for v in r["variants"].values():
         assert 0 <= v["miou"] <= 1 and 0 <= v["mpa"] <= 1 and 0 <= v["mp"] <= 1
         assert set(v["prompts"]) == {"p1", "p2"}
@@ -80,6 +83,22 @@ def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
     assert r2["variants"]["full"]["miou"] == r["variants"]["full"]["miou"]  # same figures
     assert r2["lifted"]["res_views"] == 3
     assert all(len(e["fit_views"]) == 3 for e in r2["variants"]["lifted"]["prompts"].values())
+
+
+def test_eval_field_free_needs_no_features(tmp_path):
+    """--variants lifted_fieldless: no features, codebook or field; any other variant asks for
+    --features."""
+    s, room = make_room(tmp_path)
+    out = tmp_path / "r.json"
+    argv = ["eval", str(room), "--res-masks", str(room / "res"), "--out", str(out)]
+    assert main([*argv, "--variants", "lifted,lifted_fieldless"]) == 2
+    assert main([*argv, "--variants", "lifted_fieldless"]) == 0
+    r = json.loads(out.read_text())
+    validate_json(r, "goi.eval", str(out))
+    assert set(r["variants"]) == {"lifted_fieldless"}
+    assert r["variants"]["lifted_fieldless"]["miou"] >= 0.7
+    assert not any(k.startswith("fit_field") for k in r["timings_s"])
+    assert not (tmp_path / "r.work" / "features.h5").exists()
 
 
 @pytest.mark.slow

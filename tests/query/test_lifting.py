@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from stages.core.errors import GoiError
+from stages.core.errors import GoiError, GoiWarning
 from stages.query.lifted import lift_prompt, lifted_masks, view_evidence, view_visibility
 from stages.query.lifting import LiftParams, ViewEvidence, fuse, view_confidence
 from stages.query.osh import HyperplaneParams
@@ -246,3 +246,47 @@ def test_res_views_needs_lift():
     LiftParams(lift=True, res_views=3).check()
     with pytest.raises(GoiError, match="only with --lift"):
         LiftParams(res_views=3).check()
+
+
+def test_lift_prompt_without_a_field(room):
+    """The field-free mode: the masks alone decide; what no view's evidence reaches is out."""
+    rast, ids = room["rast"], room["ids"]
+    target = ids == TARGET
+    d = room["dir"] / "res_free" / "p"
+    names = [c.name for c in room["cams"][::2]]
+    _write_masks(room, d, target, names)
+    src = ResFiles(d.parent, "p", "the box")
+    lp = LiftParams(lift=True)
+    ans = lift_prompt(rast, room["cams"], src, "the box", None, HyperplaneParams(), lp)
+    assert ans.plane is None and ans.views == names
+    # the target's hidden inside (no evidence) stays out, so judge what the views show: the
+    # selection holds only the target, and renders as the target does on unseen views
+    assert (ans.selected & target).sum() >= 0.95 * ans.selected.sum() > 0
+    assert not (ans.selected & ~ans.lifted.evident).any()
+    m = lifted_masks(rast, ans.selected, room["cams"][1::4])
+    for c in room["cams"][1::4]:
+        assert _iou(m[c.name], _gt_mask(rast, c, target)) >= 0.9
+    assert ans.record(lp)["semantics"] == "none (field-free)"
+    # K views chosen by coverage, with nothing to aim at before the first mask
+    k3 = lift_prompt(
+        rast, room["cams"], src, "the box", None, HyperplaneParams(), LiftParams(res_views=3)
+    )
+    assert len(k3.views) == 3 and set(k3.views) <= set(names)
+    assert (k3.selected & target).sum() >= 0.9 * k3.selected.sum() > 0
+
+
+def test_a_res_that_finds_nothing_anywhere_gives_an_empty_answer(room):
+    """Every view's mask empty (the detector found nothing): an empty selection and a
+    warning, with or without a field, not the field's guess from the text alone."""
+    ids = room["ids"]
+    field = _perfect_field(ids)
+    d = room["dir"] / "res_nothing" / "p"
+    names = [c.name for c in room["cams"][::4]]
+    _write_masks(room, d, np.zeros(ids.size, bool), names)
+    src = ResFiles(d.parent, "p", "a unicorn")
+    text = field.unit_codebook()[TARGET]  # the text alone would select the target's entry
+    for renderer, t in ((SemanticRenderer(room["g"], field), text), (room["rast"], None)):
+        with pytest.warns(GoiWarning, match="found nothing for 'a unicorn' on any of the 4 views"):
+            ans = lift_prompt(renderer, room["cams"], src, "a unicorn", t, HyperplaneParams(),
+                              LiftParams(lift=True))  # fmt: skip
+        assert not ans.selected.any() and ans.views == names

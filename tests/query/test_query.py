@@ -192,3 +192,85 @@ def test_lifted_query_select_render_mask_and_fit_hyperplane(queried, tmp_path):
     assert main(["select", *bad, "--out", str(tmp_path / "x.h5")]) == 2
     assert not (tmp_path / "x.h5").exists()
     assert main(["select", *common[:-1], "--out", str(tmp_path / "x.h5")]) == 2  # no plane
+
+
+@pytest.fixture(scope="module")
+def unfitted(tmp_path_factory):
+    """A scene and each object's true RES masks on the training views, and no field."""
+    from tests.helpers import semantic_scene
+
+    root = tmp_path_factory.mktemp("fieldfree")
+    s = semantic_scene(root, n=6000, n_views=8, size=(64, 48), dim=8)
+    rast = Rasterizer.from_gaussians(load_ply(s["scene"] / "point_cloud.ply"))
+    d = root / "res" / f"o{OBJ}"
+    d.mkdir(parents=True)
+    for name in s["train"]:
+        share = rast.render_features(s["cameras"][name], s["onehot"]).image
+        m = (share.argmax(2) == OBJ) & (share.sum(2) > 0.5)
+        cv2.imwrite(str(d / f"{name}.png"), m.astype(np.uint8) * 255)
+    return s, root, rast
+
+
+def test_field_free_lifted_query_select_and_render_mask(unfitted, tmp_path):
+    """--lift with RES masks and no --field: no feature model, codebook, field or text
+    embedding; the selection records that no field took part and finds the object as the
+    views see it. Without --lift (or without a RES source) --field is asked for."""
+    s, root, rast = unfitted
+    from stages.query.prompts import safe_name
+    from stages.render.lift import selection_mask
+
+    common = [
+        "--scene", str(s["scene"]), "--prompt", f"object {OBJ}",
+        "--res-masks", str(root / "res"), "--prompt-id", f"o{OBJ}",
+    ]  # fmt: skip
+    out = tmp_path / "q"
+    assert main(["query", *common, "--lift", "--out", str(out)]) == 0
+    art = load_selection(out / safe_name(f"object {OBJ}") / "selection.h5")
+    assert art.mode == "lifted" and art.lifted["semantics"] == "none (field-free)"
+    assert art.lifted["views"] == s["train"]
+    with h5py.File(out / safe_name(f"object {OBJ}") / "selection.h5") as f:
+        assert "field" not in json.loads(f.attrs["inputs"])
+    truth = s["onehot"].argmax(1) == OBJ
+    w = sum(rast.contribution(s["cameras"][n]) for n in s["train"])
+    sel = art.selected
+    assert w[sel & truth].sum() / w[sel | truth].sum() >= 0.9
+    assert main(["select", *common, "--lift", "--out", str(tmp_path / "s.h5")]) == 0
+    assert np.array_equal(load_selection(tmp_path / "s.h5").selected, sel)
+    m_dir = tmp_path / "m"
+    assert main(["render-mask", *common, "--lift", "--out", str(m_dir), "--no-overlay"]) == 0
+    cam = s["cameras"][s["test"][0]]
+    m = cv2.imread(str(m_dir / f"{cam.name}.png"), cv2.IMREAD_GRAYSCALE) > 0
+    proj, bins = rast.prepare(cam)
+    assert np.array_equal(m, selection_mask(proj, bins, sel, cam.width, cam.height))
+    # without --lift, or without RES masks, there is nothing to answer from
+    assert main(["select", *common, "--out", str(tmp_path / "x.h5")]) == 2
+    no_res = [a for a in common[:4]]
+    assert main(["query", *no_res, "--lift", "--out", str(tmp_path / "x")]) == 2
+    assert main(["fit-hyperplane", *common, "--lift", "--out", str(tmp_path / "x.h5")]) == 2
+    assert not (tmp_path / "x.h5").exists() and not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
+def test_a_res_that_finds_nothing_gives_an_empty_answer(queried, tmp_path, capsys):
+    """Every RES mask empty: goi query answers with empty masks and selection and a warning
+    (the paper's mode and --lift), not an error."""
+    s, run, root = queried
+    empty = tmp_path / "res" / "o9"
+    empty.mkdir(parents=True)
+    for name in s["train"]:
+        cv2.imwrite(str(empty / f"{name}.png"), np.zeros((96, 128), np.uint8))
+    for extra in ([], ["--lift"]):
+        out = tmp_path / f"q{len(extra)}"
+        capsys.readouterr()
+        argv = ["query", "--scene", str(s["scene"]), "--field", str(run / "field.h5"),
+                "--prompt", f"object {OBJ}", "--text-embeddings", str(root / "text.json"),
+                "--res-masks", str(tmp_path / "res"), "--prompt-id", "o9", "--out", str(out),
+                *extra]  # fmt: skip
+        assert main(argv) == 0
+        assert "the answer is empty" in capsys.readouterr().err
+        from stages.query.prompts import safe_name
+
+        pdir = out / safe_name(f"object {OBJ}")
+        assert not load_selection(pdir / "selection.h5").selected.any()
+        m = cv2.imread(str(pdir / "masks" / f"{s['test'][0]}.png"), cv2.IMREAD_GRAYSCALE)
+        assert m is not None and not m.any()

@@ -258,7 +258,9 @@ def run_benchmark(
         fitted = tfcc or direct
         assert fitted is not None
         if bundle is not None:
-            sources = {q.id: ResModel(bundle, q.text, fitted.renderer) for q in s.bench.queries}
+            sources = {
+                q.id: ResModel(bundle, q.text, fitted.renderer.rast) for q in s.bench.queries
+            }
         train = s.room.scene.views("train")
         hp = HyperplaneParams(threshold=p.threshold)
         planes = HyperplaneRun(wdir / "hyperplanes.h5", refit=True)

@@ -271,7 +271,7 @@ def export_model(
         tmp = Path(t)
         parts = _export(plan, tmp, opts, report)
         name = "+".join(s.path.resolve().name for s in checked)
-        manifest = {"schema": "goi.bundle", "schema_version": "1.1", "name": name, **parts}
+        manifest = {"schema": "goi.bundle", "schema_version": "1.2", "name": name, **parts}
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
         (tmp / MARKER).write_text(f"written by goi export-model (goi {__version__})\n")
         bundle = load_bundle(tmp)  # what we wrote must pass our own reader
