@@ -46,6 +46,10 @@ from stages.query.osh import Counts
 
 #: Pixels' worth of agreement every view starts with in its confidence (see the module doc).
 CONFIDENCE_PRIOR = 10.0
+#: The least confidence a view keeps, relative to the most trusted view's (see `relative`).
+CONFIDENCE_FLOOR = 0.02
+#: The rounds stop once no view's relative confidence moves by more than this.
+CONFIDENCE_TOL = 1e-3
 #: Views the RES model runs on when it has to run (a model costs seconds per view on a CPU).
 DEFAULT_MODEL_VIEWS = 8
 
@@ -141,6 +145,33 @@ def view_confidence(e: ViewEvidence, core: np.ndarray) -> float:
     return (hit + CONFIDENCE_PRIOR) / (union + CONFIDENCE_PRIOR)
 
 
+def agreed_core(S1: np.ndarray, S0: np.ndarray, p: LiftParams) -> np.ndarray:
+    """[G] bool: the core the views are scored against: the evident Gaussians whose share of
+    "in" S1 / E is at least `core_share` of the largest share any evident Gaussian has. On a
+    compact target the largest share is ~1 and this is S1 >= q E; on a thin one, whose every
+    Gaussian straddles eroded mask boundaries, no Gaussian reaches q E and an absolute core
+    would be empty (every view then scores ~0). Empty only when no mask claims anything."""
+    E = S1 + S0
+    evident = E >= p.min_evidence
+    share = np.divide(S1, E, out=np.zeros_like(E), where=evident)  # [G]
+    top = float(share.max(initial=0.0))
+    if top <= 0.0:
+        return np.zeros(E.shape, bool)
+    return evident & (share >= p.core_share * top)
+
+
+def relative(raw: np.ndarray) -> np.ndarray:
+    """[V] confidences relative to the most trusted view's, floored at CONFIDENCE_FLOOR. The
+    weighted IoU with the core falls for every view together when the core is small against
+    what the views claim (a thin target, eroded masks): absolute confidences of 0.007-0.33
+    shrink every Gaussian's evidence below `min_evidence` and hand the prompt to the field.
+    Relative ones keep the best view's evidence at full weight and rank the others."""
+    top = float(raw.max(initial=0.0))
+    if top <= 0.0:
+        return np.ones_like(raw)
+    return np.maximum(raw / top, CONFIDENCE_FLOOR)
+
+
 def entry_counts(
     S1: np.ndarray, S0: np.ndarray, entry: np.ndarray, seen: np.ndarray, n_entries: int
 ) -> Counts:
@@ -186,13 +217,16 @@ def fuse(
     all every Gaussian takes the semantic decision (the OSH)."""
     n = entry.shape[0]
     conf = np.ones(len(evidence))
-    for r in range(p.confidence_rounds + 1):
+    S1, S0 = accumulate(evidence, conf, n)
+    rounds = 0
+    for _ in range(p.confidence_rounds):
+        core = agreed_core(S1, S0, p)
+        new = relative(np.array([view_confidence(e, core) for e in evidence]))
+        if np.abs(new - conf).max(initial=0.0) <= CONFIDENCE_TOL:
+            break  # the vote would not change: more rounds only cost time
+        conf = new
         S1, S0 = accumulate(evidence, conf, n)
-        if r == p.confidence_rounds:
-            break
-        E = S1 + S0
-        core = (E >= p.min_evidence) & (S1 >= p.core_share * E)
-        conf = np.array([view_confidence(e, core) for e in evidence])
+        rounds += 1
     sel, evident = decide(S1, S0, entry, seen, plane_positive, p)
     confidence = {e.view: round(float(c), 4) for e, c in zip(evidence, conf, strict=True)}
-    return Lifted(sel, evident, S1, S0, confidence)
+    return Lifted(sel, evident, S1, S0, confidence, {"confidence_rounds_run": rounds})
