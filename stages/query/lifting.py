@@ -48,6 +48,10 @@ from stages.query.osh import Counts
 CONFIDENCE_PRIOR = 10.0
 #: The least confidence a view keeps, relative to the most trusted view's (see `relative`).
 CONFIDENCE_FLOOR = 0.02
+#: Share of a Gaussian's evidence (S1 / E), and of its codebook entry's, from which the masks
+#: count it as partly in (decide: thin structures under eroded masks; measured in
+#: docs/benchmarks.md).
+PARTLY_IN = 0.2
 #: The rounds stop once no view's relative confidence moves by more than this.
 CONFIDENCE_TOL = 1e-3
 #: Views the RES model runs on when it has to run (a model costs seconds per view on a CPU).
@@ -202,7 +206,13 @@ def decide(
     b = np.bincount(entry[ev], weights=S0[ev], minlength=n)
     # an entry decides for its unseen Gaussians once it has a pixel's worth of evidence
     entry_in = np.where(a + b >= 1.0, (a - b) > p.background_bias * (a + b), plane_positive)
-    sel = np.where(evident, vote, seen & entry_in[entry])
+    # thin structures: a Gaussian that the masks put partly in (eroded masks cut most of a thin
+    # part's footprint) is in when its codebook entry, over all its Gaussians, is put partly in
+    # too: the masks and the field agree on it (step 4 of the module doc)
+    share = np.divide(S1, E, out=np.zeros_like(E), where=evident)  # [G]
+    entry_share = np.divide(a, a + b, out=np.zeros_like(a), where=a + b >= 1.0)  # [N]
+    partly = seen & (share >= PARTLY_IN) & (entry_share[entry] >= PARTLY_IN)
+    sel = np.where(evident, vote | partly, seen & entry_in[entry])
     return sel, evident
 
 

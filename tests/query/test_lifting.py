@@ -246,3 +246,51 @@ def test_res_views_needs_lift():
     LiftParams(lift=True, res_views=3).check()
     with pytest.raises(GoiError, match="only with --lift"):
         LiftParams(res_views=3).check()
+
+
+def _thin_evidence(views: int = 12, share: float = 0.25):
+    """Synthetic evidence of #26's collapse: a thin target (Gaussians 0-199, entry 1) whose
+    eroded masks cover only `share` of each Gaussian's footprint, in front of a wall (entry 0)
+    of which a rim next to the target (Gaussians 200-249) gets a little of the masks."""
+    target, rim, wall = np.arange(200), np.arange(200, 250), np.arange(250, 3000)
+    ev = []
+    for v in range(views):
+        seen_wall = wall[(wall + 37 * v) % 5 == 0]  # each view sees another part of the wall
+        ids = np.concatenate([target, rim, seen_wall])
+        w = np.concatenate([np.full(200, 3.0), np.full(50, 5.0), np.full(seen_wall.size, 5.0)])
+        s1 = np.concatenate([share * w[:200], 0.05 * w[200:250], np.zeros(seen_wall.size)])
+        ev.append(ViewEvidence(f"v{v}", ids, s1, w - s1, False))
+    entry = np.zeros(3000, np.int64)
+    entry[target] = 1
+    return ev, entry, np.arange(3000) < 200
+
+
+def test_thin_target_with_eroded_masks_does_not_collapse():
+    ev, entry, target = _thin_evidence()
+    seen = np.ones(entry.size, bool)
+    out = fuse(ev, entry, seen, np.array([False, True]), LiftParams())
+    # the confidences are relative: the views agree, so none is silenced (#26: all fell to
+    # 0.007-0.33 together, because an absolute core of S1 >= 0.75 E was empty)
+    conf = np.array(list(out.confidence.values()))
+    assert conf.max() == 1.0 and conf.min() > 0.9
+    # no Gaussian is more in than out, yet the masks and the field agree on the target
+    assert not ((out.S1 - out.S0) > 0).any()
+    assert _iou(out.selected, target) == 1.0
+    # a rim that the masks barely touch (5%) stays out whatever its entry says
+    entry2 = entry.copy()
+    entry2[200:250] = 1
+    out2 = fuse(ev, entry2, seen, np.array([False, True]), LiftParams())
+    assert not out2.selected[200:250].any()
+
+
+def test_relative_confidence_still_silences_a_confuser():
+    ev, entry, target = _thin_evidence(share=0.9)
+    # two views also claim the wall they see (the confuser), in full
+    for k in (0, 1):
+        e = ev[k]
+        wall = e.ids >= 250
+        e.s1[wall], e.s0[wall] = e.s0[wall], 0.0
+    out = fuse(ev, entry, np.ones(entry.size, bool), np.array([False, True]), LiftParams())
+    assert out.confidence["v0"] < 0.2 and out.confidence["v1"] < 0.2
+    assert min(out.confidence[f"v{v}"] for v in range(2, 12)) == 1.0
+    assert _iou(out.selected, target) == 1.0
