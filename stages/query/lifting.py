@@ -27,6 +27,19 @@ s0 (nothing of the prompt there). The decision, per prompt:
                goes to ~0), and the vote is taken again with c_v. A view
                that keeps adding the same confuser, or answers where the target is absent, is
                down-weighted as a whole instead of winning Gaussian by Gaussian.
+               The core is relative (`agreed_core`: a share S1 / E of at least q times the
+               largest share any Gaussian has), so it is empty only when no mask claims
+               anything, and so are the confidences (`relative`: c_v over the largest c_v,
+               floored at CONFIDENCE_FLOOR): on a thin target under eroded masks an absolute
+               core is empty, every view scored 0.007-0.33 and the re-vote silenced all the
+               evidence at once (#26). The rounds stop when the confidences stop moving.
+  4. thin parts: a Gaussian voted out that the masks still put partly in (S1 >= PARTLY_IN E),
+               and whose codebook entry they put partly in too (summed over the entry's
+               evident Gaussians), is in: erosion by 2-3 px leaves a thin part only 6-32% of
+               its footprint, and the field, not a majority of pixels, says what it is.
+  5. guard:    a lifted answer far smaller than the field's own (the OSH's side of the plane)
+               is a collapsed vote: the field's answer joins it where the masks see it and do
+               not reject it outright (`guard`).
 
 The OSH itself is fitted on the lifted evidence (`entry_counts`): entry k's positive and
 negative weights are the S1 and S0 of its Gaussians, the same loss as the paper's per-pixel
@@ -51,7 +64,13 @@ CONFIDENCE_FLOOR = 0.02
 #: Share of a Gaussian's evidence (S1 / E), and of its codebook entry's, from which the masks
 #: count it as partly in (decide: thin structures under eroded masks; measured in
 #: docs/benchmarks.md).
-PARTLY_IN = 0.2
+PARTLY_IN = 0.05
+#: ... and of its codebook entry's (a support that one view's mask takes whole stays out).
+ENTRY_PARTLY_IN = 0.2
+#: The lifted answer counts as collapsed below this share of the field's selection (`guard`).
+COLLAPSE_RATIO = 0.02
+#: Share of "in" below which the masks reject a Gaussian outright (`guard`).
+REJECTED_SHARE = 0.05
 #: The rounds stop once no view's relative confidence moves by more than this.
 CONFIDENCE_TOL = 1e-3
 #: Views the RES model runs on when it has to run (a model costs seconds per view on a CPU).
@@ -211,7 +230,7 @@ def decide(
     # too: the masks and the field agree on it (step 4 of the module doc)
     share = np.divide(S1, E, out=np.zeros_like(E), where=evident)  # [G]
     entry_share = np.divide(a, a + b, out=np.zeros_like(a), where=a + b >= 1.0)  # [N]
-    partly = seen & (share >= PARTLY_IN) & (entry_share[entry] >= PARTLY_IN)
+    partly = seen & (share >= PARTLY_IN) & (entry_share[entry] >= ENTRY_PARTLY_IN)
     sel = np.where(evident, vote | partly, seen & entry_in[entry])
     return sel, evident
 
@@ -238,5 +257,22 @@ def fuse(
         S1, S0 = accumulate(evidence, conf, n)
         rounds += 1
     sel, evident = decide(S1, S0, entry, seen, plane_positive, p)
+    sel, fell_back = guard(sel, seen & plane_positive[entry], S1, S0, p)
     confidence = {e.view: round(float(c), 4) for e, c in zip(evidence, conf, strict=True)}
-    return Lifted(sel, evident, S1, S0, confidence, {"confidence_rounds_run": rounds})
+    info = {"confidence_rounds_run": rounds, "collapsed_vote_fused_with_field": fell_back}
+    return Lifted(sel, evident, S1, S0, confidence, info)
+
+
+def guard(
+    sel: np.ndarray, field_sel: np.ndarray, S1: np.ndarray, S0: np.ndarray, p: LiftParams
+) -> tuple[np.ndarray, bool]:
+    """[G] selection, and whether it was fused with the field's: when the lifted answer holds
+    fewer than COLLAPSE_RATIO of the Gaussians the field selects (#26: 19 against 2,225) the
+    vote has collapsed, not found a smaller object, and the field's answer joins it wherever
+    the masks do not reject it outright (an evident Gaussian with S1 < REJECTED_SHARE E)."""
+    n_field = int(field_sel.sum())
+    if n_field == 0 or sel.sum() >= COLLAPSE_RATIO * n_field:
+        return sel, False
+    E = S1 + S0
+    kept = (E >= p.min_evidence) & (S1 >= REJECTED_SHARE * E)
+    return sel | (field_sel & kept), True

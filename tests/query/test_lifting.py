@@ -251,14 +251,14 @@ def test_res_views_needs_lift():
 def _thin_evidence(views: int = 12, share: float = 0.25):
     """Synthetic evidence of #26's collapse: a thin target (Gaussians 0-199, entry 1) whose
     eroded masks cover only `share` of each Gaussian's footprint, in front of a wall (entry 0)
-    of which a rim next to the target (Gaussians 200-249) gets a little of the masks."""
+    of which a rim next to the target (Gaussians 200-249) gets a little (2%) of the masks."""
     target, rim, wall = np.arange(200), np.arange(200, 250), np.arange(250, 3000)
     ev = []
     for v in range(views):
         seen_wall = wall[(wall + 37 * v) % 5 == 0]  # each view sees another part of the wall
         ids = np.concatenate([target, rim, seen_wall])
         w = np.concatenate([np.full(200, 3.0), np.full(50, 5.0), np.full(seen_wall.size, 5.0)])
-        s1 = np.concatenate([share * w[:200], 0.05 * w[200:250], np.zeros(seen_wall.size)])
+        s1 = np.concatenate([share * w[:200], 0.02 * w[200:250], np.zeros(seen_wall.size)])
         ev.append(ViewEvidence(f"v{v}", ids, s1, w - s1, False))
     entry = np.zeros(3000, np.int64)
     entry[target] = 1
@@ -276,7 +276,7 @@ def test_thin_target_with_eroded_masks_does_not_collapse():
     # no Gaussian is more in than out, yet the masks and the field agree on the target
     assert not ((out.S1 - out.S0) > 0).any()
     assert _iou(out.selected, target) == 1.0
-    # a rim that the masks barely touch (5%) stays out whatever its entry says
+    # a rim that the masks barely touch (2%) stays out whatever its entry says
     entry2 = entry.copy()
     entry2[200:250] = 1
     out2 = fuse(ev, entry2, seen, np.array([False, True]), LiftParams())
@@ -294,3 +294,22 @@ def test_relative_confidence_still_silences_a_confuser():
     assert out.confidence["v0"] < 0.2 and out.confidence["v1"] < 0.2
     assert min(out.confidence[f"v{v}"] for v in range(2, 12)) == 1.0
     assert _iou(out.selected, target) == 1.0
+
+
+def test_guard_fuses_a_collapsed_vote_with_the_field():
+    from stages.query.lifting import guard
+
+    n = 3000
+    S1, S0 = np.zeros(n), np.full(n, 10.0)
+    S1[:2225] = 1.0  # the masks put the field's answer a little in (eroded), not a majority
+    S0[2000:2225] = 0.0
+    S1[2225:2300] = 0.1  # seen, rejected outright: stays out
+    field_sel = np.arange(n) < 2300
+    sel = np.zeros(n, bool)
+    sel[:19] = True  # #26: 19 Gaussians against the field's 2,225
+    fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    assert fell_back and fused.sum() == 2225 and fused[:2225].all()
+    # a lifted answer that is merely smaller than the field's is left alone
+    sel[:100] = True
+    same, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    assert not fell_back and (same == sel).all()
