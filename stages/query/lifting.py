@@ -64,9 +64,9 @@ CONFIDENCE_FLOOR = 0.02
 #: Share of a Gaussian's evidence (S1 / E), and of its codebook entry's, from which the masks
 #: count it as partly in (decide: thin structures under eroded masks; measured in
 #: docs/benchmarks.md).
-PARTLY_IN = 0.05
+PARTLY_IN = 0.2
 #: ... and of its codebook entry's (a support that one view's mask takes whole stays out).
-ENTRY_PARTLY_IN = 0.2
+ENTRY_PARTLY_IN = 0.5
 #: The lifted answer counts as collapsed below this share of the field's selection (`guard`).
 COLLAPSE_RATIO = 0.02
 #: Share of "in" below which the masks reject a Gaussian outright (`guard`).
