@@ -273,9 +273,16 @@ def test_thin_target_with_eroded_masks_does_not_collapse():
     # 0.007-0.33 together, because an absolute core of S1 >= 0.75 E was empty)
     conf = np.array(list(out.confidence.values()))
     assert conf.max() == 1.0 and conf.min() > 0.9
-    # no Gaussian is more in than out, yet the masks and the field agree on the target
+    # no Gaussian is more in than out, and the entry is only a quarter in: the vote selects
+    # nothing, 0 of the field's 200 Gaussians, and the guard fuses the field's answer with it
     assert not ((out.S1 - out.S0) > 0).any()
+    assert out.info["collapsed_vote_fused_with_field"]
     assert _iou(out.selected, target) == 1.0
+    # masks that keep 60% of each footprint decide alone
+    ev60, _, _ = _thin_evidence(share=0.6)
+    out60 = fuse(ev60, entry, seen, np.array([False, True]), LiftParams())
+    assert not out60.info["collapsed_vote_fused_with_field"]
+    assert _iou(out60.selected, target) == 1.0
     # a rim that the masks barely touch (2%) stays out whatever its entry says
     entry2 = entry.copy()
     entry2[200:250] = 1
@@ -313,3 +320,16 @@ def test_guard_fuses_a_collapsed_vote_with_the_field():
     sel[:100] = True
     same, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
     assert not fell_back and (same == sel).all()
+
+
+def test_thin_parts_of_an_object_the_masks_mostly_agree_on():
+    from stages.query.lifting import decide
+
+    # an object (entry 1): a body the masks hold (90% in) and thin legs erosion cut to 30%;
+    # a floor (entry 0) whose rim next to the legs the masks touch (30% in) too
+    S1 = np.r_[np.full(150, 9.0), np.full(50, 3.0), np.full(50, 3.0), np.zeros(100)]
+    S0 = np.r_[np.full(150, 1.0), np.full(50, 7.0), np.full(50, 7.0), np.full(100, 10.0)]
+    entry = np.r_[np.ones(200, np.int64), np.zeros(150, np.int64)]
+    sel, _ = decide(S1, S0, entry, np.ones(350, bool), np.array([False, True]), LiftParams())
+    assert sel[:200].all()  # the legs too: partly in, and so is their entry (76%)
+    assert not sel[200:].any()  # the rim: partly in, but its entry (the floor) is not
