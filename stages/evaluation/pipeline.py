@@ -48,6 +48,7 @@ from stages.evaluation.variants import (
     VisibilityCache,
     render_direct,
 )
+from stages.evaluation.worst import add_worst_prompts
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.lifting import LiftParams
@@ -553,6 +554,7 @@ def run_eval(
             figures[variant][prompt.id] = [pred.masks, gts]
     for variant in variants:
         _summarise(doc["variants"][variant], room.gaussian_ids is not None)
+    add_worst_prompts(doc["variants"])
     with staged_outputs():  # the page, its images and the report appear together
         if run.html is not None:
             with timer("html"):  # doc["timings_s"] is timer.t: the page's own time lands too

@@ -90,6 +90,29 @@ def page_files_dir(page: Path) -> Path:
     return Path(page).with_name(Path(page).stem + "_files")
 
 
+def floor_table(variants: dict) -> str:
+    """The floor under the prompts (stages.evaluation.worst): each variant's worst prompt and
+    how many prompts trail `full` by more than the margin (a mean can hide a collapse)."""
+    rows = [
+        "</table><h2>Worst prompt</h2><table><tr><th class='l'>variant</th><th class='l'>"
+        "worst prompt</th><th>IoU</th><th class='l'>prompts below full</th></tr>"
+    ]
+    for v, r in variants.items():
+        w, b = r.get("worst_prompt"), r.get("below_full")
+        worst = f"{esc(w['id'])}: {esc(w['text'])}" if w else "-"
+        below = (
+            f"{b['count']} (more than {b['margin']:.2f} below)"
+            + (": " + esc(", ".join(b["prompts"])) if b["prompts"] else "")
+            if b
+            else "-"
+        )
+        rows.append(
+            f"<tr><td class='l'>{esc(v)}</td><td class='l'>{worst}</td>"
+            f"<td>{fmt(w['iou'] if w else None)}</td><td class='l'>{below}</td></tr>"
+        )
+    return "".join(rows)
+
+
 def eval_page(
     path: Path,
     report: dict,
@@ -118,6 +141,7 @@ def eval_page(
             f"<td>{fmt(r['mp'])}</td><td>{fmt(r.get('miou_3d'))}</td>"
             f"<td>{fmt(r.get('miou_3d_visible'))}</td></tr>"
         )
+    body.append(floor_table(report["variants"]))
     lifted = report.get("lifted")
     if lifted is not None:
         body.append(

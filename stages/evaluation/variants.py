@@ -155,6 +155,7 @@ def predict_lifted(
         "views_chosen_by": rec["chosen_by"],
         "view_confidence": {d["view"]: d["confidence"] for d in rec["per_view"]},
         "n_evident": rec["n_evident"],
+        "fusion": rec["fusion"],
     }
     return Prediction(masks, ans.selected, info)
 

@@ -89,6 +89,7 @@ class LiftedAnswer:
             "n_evident": int(lf.evident.sum()),
             "n_selected_by_masks": int((lf.selected & lf.evident).sum()),
             "n_selected_by_semantics": int((lf.selected & ~lf.evident).sum()),
+            "fusion": lf.info,
         }
 
 

@@ -27,6 +27,19 @@ s0 (nothing of the prompt there). The decision, per prompt:
                goes to ~0), and the vote is taken again with c_v. A view
                that keeps adding the same confuser, or answers where the target is absent, is
                down-weighted as a whole instead of winning Gaussian by Gaussian.
+               The core is relative (`agreed_core`: a share S1 / E of at least q times the
+               largest share any Gaussian has), so it is empty only when no mask claims
+               anything, and so are the confidences (`relative`: c_v over the largest c_v,
+               floored at CONFIDENCE_FLOOR): on a thin target under eroded masks an absolute
+               core is empty, every view scored 0.007-0.33 and the re-vote silenced all the
+               evidence at once (#26). The rounds stop when the confidences stop moving.
+  4. thin parts: a Gaussian voted out that the masks still put partly in (S1 >= PARTLY_IN E),
+               and whose codebook entry they put partly in too (summed over the entry's
+               evident Gaussians), is in: erosion by 2-3 px leaves a thin part only 6-32% of
+               its footprint, and the field, not a majority of pixels, says what it is.
+  5. guard:    a lifted answer under half the field's own (the OSH's side of the plane) is a
+               vote that lost what the masks only graze: the field's answer joins it where the
+               masks see it and do not reject it outright (`guard`).
 
 The OSH itself is fitted on the lifted evidence (`entry_counts`): entry k's positive and
 negative weights are the S1 and S0 of its Gaussians, the same loss as the paper's per-pixel
@@ -46,6 +59,22 @@ from stages.query.osh import Counts, HyperplaneParams
 
 #: Pixels' worth of agreement every view starts with in its confidence (see the module doc).
 CONFIDENCE_PRIOR = 10.0
+#: The least confidence a view keeps, relative to the most trusted view's (see `relative`).
+CONFIDENCE_FLOOR = 0.02
+#: Share of a Gaussian's evidence (S1 / E), and of its codebook entry's, from which the masks
+#: count it as partly in (decide: thin structures under eroded masks; measured in
+#: docs/benchmarks.md).
+PARTLY_IN = 0.2
+#: ... and of its codebook entry's (a support that one view's mask takes whole stays out).
+ENTRY_PARTLY_IN = 0.5
+#: The lifted answer disagrees with the field below this share of the field's selection
+#: (`guard`; 0.02 would catch only #26's outright collapse, 19 against 2,225 Gaussians, and
+#: left the palm plant at 3D IoU 0.17 on res/; measured in docs/benchmarks.md).
+COLLAPSE_RATIO = 0.5
+#: Share of "in" below which the masks reject a Gaussian outright (`guard`).
+REJECTED_SHARE = 0.05
+#: The rounds stop once no view's relative confidence moves by more than this.
+CONFIDENCE_TOL = 1e-3
 #: Views the RES model runs on when it has to run (a model costs seconds per view on a CPU).
 DEFAULT_MODEL_VIEWS = 8
 
@@ -160,6 +189,33 @@ def view_confidence(e: ViewEvidence, core: np.ndarray) -> float:
     return (hit + CONFIDENCE_PRIOR) / (union + CONFIDENCE_PRIOR)
 
 
+def agreed_core(S1: np.ndarray, S0: np.ndarray, p: LiftParams) -> np.ndarray:
+    """[G] bool: the core the views are scored against: the evident Gaussians whose share of
+    "in" S1 / E is at least `core_share` of the largest share any evident Gaussian has. On a
+    compact target the largest share is ~1 and this is S1 >= q E; on a thin one, whose every
+    Gaussian straddles eroded mask boundaries, no Gaussian reaches q E and an absolute core
+    would be empty (every view then scores ~0). Empty only when no mask claims anything."""
+    E = S1 + S0
+    evident = E >= p.min_evidence
+    share = np.divide(S1, E, out=np.zeros_like(E), where=evident)  # [G]
+    top = float(share.max(initial=0.0))
+    if top <= 0.0:
+        return np.zeros(E.shape, bool)
+    return evident & (share >= p.core_share * top)
+
+
+def relative(raw: np.ndarray) -> np.ndarray:
+    """[V] confidences relative to the most trusted view's, floored at CONFIDENCE_FLOOR. The
+    weighted IoU with the core falls for every view together when the core is small against
+    what the views claim (a thin target, eroded masks): absolute confidences of 0.007-0.33
+    shrink every Gaussian's evidence below `min_evidence` and hand the prompt to the field.
+    Relative ones keep the best view's evidence at full weight and rank the others."""
+    top = float(raw.max(initial=0.0))
+    if top <= 0.0:
+        return np.ones_like(raw)
+    return np.maximum(raw / top, CONFIDENCE_FLOOR)
+
+
 def entry_counts(
     S1: np.ndarray, S0: np.ndarray, entry: np.ndarray, seen: np.ndarray, n_entries: int
 ) -> Counts:
@@ -190,7 +246,13 @@ def decide(
     b = np.bincount(entry[ev], weights=S0[ev], minlength=n)
     # an entry decides for its unseen Gaussians once it has a pixel's worth of evidence
     entry_in = np.where(a + b >= 1.0, (a - b) > p.background_bias * (a + b), plane_positive)
-    sel = np.where(evident, vote, seen & entry_in[entry])
+    # thin structures: a Gaussian that the masks put partly in (eroded masks cut most of a thin
+    # part's footprint) is in when its codebook entry, over all its Gaussians, is put partly in
+    # too: the masks and the field agree on it (step 4 of the module doc)
+    share = np.divide(S1, E, out=np.zeros_like(E), where=evident)  # [G]
+    entry_share = np.divide(a, a + b, out=np.zeros_like(a), where=a + b >= 1.0)  # [N]
+    partly = seen & (share >= PARTLY_IN) & (entry_share[entry] >= ENTRY_PARTLY_IN)
+    sel = np.where(evident, vote | partly, seen & entry_in[entry])
     return sel, evident
 
 
@@ -205,16 +267,34 @@ def fuse(
     all every Gaussian takes the semantic decision (the OSH)."""
     n = entry.shape[0]
     conf = np.ones(len(evidence))
-    for r in range(p.confidence_rounds + 1):
+    S1, S0 = accumulate(evidence, conf, n)
+    rounds = 0
+    for _ in range(p.confidence_rounds):
+        core = agreed_core(S1, S0, p)
+        new = relative(np.array([view_confidence(e, core) for e in evidence]))
+        if np.abs(new - conf).max(initial=0.0) <= CONFIDENCE_TOL:
+            break  # the vote would not change: more rounds only cost time
+        conf = new
         S1, S0 = accumulate(evidence, conf, n)
-        if r == p.confidence_rounds:
-            break
-        E = S1 + S0
-        core = (E >= p.min_evidence) & (S1 >= p.core_share * E)
-        settled = conf
-        conf = np.array([view_confidence(e, core) for e in evidence])
-        if np.array_equal(conf, settled):
-            break  # further rounds would repeat this one exactly
+        rounds += 1
     sel, evident = decide(S1, S0, entry, seen, plane_positive, p)
+    sel, fell_back = guard(sel, seen & plane_positive[entry], S1, S0, p)
     confidence = {e.view: round(float(c), 4) for e, c in zip(evidence, conf, strict=True)}
-    return Lifted(sel, evident, S1, S0, confidence)
+    info = {"confidence_rounds_run": rounds, "collapsed_vote_fused_with_field": fell_back}
+    return Lifted(sel, evident, S1, S0, confidence, info)
+
+
+def guard(
+    sel: np.ndarray, field_sel: np.ndarray, S1: np.ndarray, S0: np.ndarray, p: LiftParams
+) -> tuple[np.ndarray, bool]:
+    """[G] selection, and whether it was fused with the field's: when the lifted answer holds
+    fewer than COLLAPSE_RATIO of the Gaussians the field selects (#26: 19 against 2,225; a
+    palm whose fronds erosion erased: 990 against 4,044) the vote has lost what the masks
+    only graze, not found a smaller object, and the field's answer joins it wherever
+    the masks do not reject it outright (an evident Gaussian with S1 < REJECTED_SHARE E)."""
+    n_field = int(field_sel.sum())
+    if n_field == 0 or sel.sum() >= COLLAPSE_RATIO * n_field:
+        return sel, False
+    E = S1 + S0
+    kept = (E >= p.min_evidence) & (S1 >= REJECTED_SHARE * E)
+    return sel | (field_sel & kept), True

@@ -290,3 +290,90 @@ def test_a_res_that_finds_nothing_anywhere_gives_an_empty_answer(room):
             ans = lift_prompt(renderer, room["cams"], src, "a unicorn", t, HyperplaneParams(),
                               LiftParams(lift=True))  # fmt: skip
         assert not ans.selected.any() and ans.views == names
+
+
+def _thin_evidence(views: int = 12, share: float = 0.25):
+    """Synthetic evidence of #26's collapse: a thin target (Gaussians 0-199, entry 1) whose
+    eroded masks cover only `share` of each Gaussian's footprint, in front of a wall (entry 0)
+    of which a rim next to the target (Gaussians 200-249) gets a little (2%) of the masks."""
+    target, rim, wall = np.arange(200), np.arange(200, 250), np.arange(250, 3000)
+    ev = []
+    for v in range(views):
+        seen_wall = wall[(wall + 37 * v) % 5 == 0]  # each view sees another part of the wall
+        ids = np.concatenate([target, rim, seen_wall])
+        w = np.concatenate([np.full(200, 3.0), np.full(50, 5.0), np.full(seen_wall.size, 5.0)])
+        s1 = np.concatenate([share * w[:200], 0.02 * w[200:250], np.zeros(seen_wall.size)])
+        ev.append(ViewEvidence(f"v{v}", ids, s1, w - s1, False))
+    entry = np.zeros(3000, np.int64)
+    entry[target] = 1
+    return ev, entry, np.arange(3000) < 200
+
+
+def test_thin_target_with_eroded_masks_does_not_collapse():
+    ev, entry, target = _thin_evidence()
+    seen = np.ones(entry.size, bool)
+    out = fuse(ev, entry, seen, np.array([False, True]), LiftParams())
+    # the confidences are relative: the views agree, so none is silenced (#26: all fell to
+    # 0.007-0.33 together, because an absolute core of S1 >= 0.75 E was empty)
+    conf = np.array(list(out.confidence.values()))
+    assert conf.max() == 1.0 and conf.min() > 0.9
+    # no Gaussian is more in than out, and the entry is only a quarter in: the vote selects
+    # nothing, 0 of the field's 200 Gaussians, and the guard fuses the field's answer with it
+    assert not ((out.S1 - out.S0) > 0).any()
+    assert out.info["collapsed_vote_fused_with_field"]
+    assert _iou(out.selected, target) == 1.0
+    # masks that keep 60% of each footprint decide alone
+    ev60, _, _ = _thin_evidence(share=0.6)
+    out60 = fuse(ev60, entry, seen, np.array([False, True]), LiftParams())
+    assert not out60.info["collapsed_vote_fused_with_field"]
+    assert _iou(out60.selected, target) == 1.0
+    # a rim that the masks barely touch (2%) stays out whatever its entry says
+    entry2 = entry.copy()
+    entry2[200:250] = 1
+    out2 = fuse(ev, entry2, seen, np.array([False, True]), LiftParams())
+    assert not out2.selected[200:250].any()
+
+
+def test_relative_confidence_still_silences_a_confuser():
+    ev, entry, target = _thin_evidence(share=0.9)
+    # two views also claim the wall they see (the confuser), in full
+    for k in (0, 1):
+        e = ev[k]
+        wall = e.ids >= 250
+        e.s1[wall], e.s0[wall] = e.s0[wall], 0.0
+    out = fuse(ev, entry, np.ones(entry.size, bool), np.array([False, True]), LiftParams())
+    assert out.confidence["v0"] < 0.2 and out.confidence["v1"] < 0.2
+    assert min(out.confidence[f"v{v}"] for v in range(2, 12)) == 1.0
+    assert _iou(out.selected, target) == 1.0
+
+
+def test_guard_fuses_a_collapsed_vote_with_the_field():
+    from stages.query.lifting import guard
+
+    n = 3000
+    S1, S0 = np.zeros(n), np.full(n, 10.0)
+    S1[:2225] = 1.0  # the masks put the field's answer a little in (eroded), not a majority
+    S0[2000:2225] = 0.0
+    S1[2225:2300] = 0.1  # seen, rejected outright: stays out
+    field_sel = np.arange(n) < 2300
+    sel = np.zeros(n, bool)
+    sel[:19] = True  # #26: 19 Gaussians against the field's 2,225
+    fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    assert fell_back and fused.sum() == 2225 and fused[:2225].all()
+    # a lifted answer that is merely smaller than the field's (over half of it) is left alone
+    sel[:1200] = True
+    same, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    assert not fell_back and (same == sel).all()
+
+
+def test_thin_parts_of_an_object_the_masks_mostly_agree_on():
+    from stages.query.lifting import decide
+
+    # an object (entry 1): a body the masks hold (90% in) and thin legs erosion cut to 30%;
+    # a floor (entry 0) whose rim next to the legs the masks touch (30% in) too
+    S1 = np.r_[np.full(150, 9.0), np.full(50, 3.0), np.full(50, 3.0), np.zeros(100)]
+    S0 = np.r_[np.full(150, 1.0), np.full(50, 7.0), np.full(50, 7.0), np.full(100, 10.0)]
+    entry = np.r_[np.ones(200, np.int64), np.zeros(150, np.int64)]
+    sel, _ = decide(S1, S0, entry, np.ones(350, bool), np.array([False, True]), LiftParams())
+    assert sel[:200].all()  # the legs too: partly in, and so is their entry (76%)
+    assert not sel[200:].any()  # the rim: partly in, but its entry (the floor) is not

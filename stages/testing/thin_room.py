@@ -1,0 +1,184 @@
+"""The dev room with thin and small targets added as prompts, made at test/benchmark time.
+
+The development room (../shared/dev-room) prompts only big, compact objects, so a lifted mode
+that collapses on thin structures (issue #26: a bar stool's legs, masks eroded by 2-3 px) looks
+fine on it. The room also holds thin and small instances without prompts: the purple electric
+guitar, the coffee cup, the cuckoo clock and the tall palm plant. `extend_room` writes a copy of
+the room (symlinks to the big read-only parts; the shared room is never written) whose
+prompts.json adds them, with ground truth made from ids/ the way the room's own was made
+(the test views where the targets cover >= 0.5% of the pixels), and `add_res` writes a RES set
+for the copy: the room's own masks of the original prompts (symlinked) plus masks for the added
+prompts from the room's tools (`res_masks.py`, simulated; `res_masks_sam.py`, a real SAM), or
+`eroded`: every prompt's ground truth eroded by 2-3 px in each view (the collapse of #26).
+
+    python -m stages.testing.thin_room ../shared/dev-room OUT [--res res,res-correlated,...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from stages.scene.images import read_mask
+
+#: The added prompts: (id, text, instance ids, kind); texts are in text_embeddings.json.
+THIN_PROMPTS = (
+    ("t01", "purple electric guitar", [23], "appearance"),
+    ("t02", "coffee cup", [13], "category"),
+    ("t03", "wooden cuckoo clock", [24], "appearance"),
+    ("t04", "tall potted palm plant", [21], "appearance"),
+)
+#: Smallest share of a view's pixels the targets cover for the view to have a mask (the room's).
+MIN_FRAC = 0.005
+#: The room's RES sets and the tool options that made them (their meta.json).
+RES_SETS = {
+    "res": ("res_masks.py", []),
+    "res-correlated": ("res_masks.py", ["--confuser-rate", "0.25", "--absent-rate", "0.2"]),
+    "res-sam": ("res_masks_sam.py", []),
+    "res-sam-correlated": (
+        "res_masks_sam.py",
+        ["--confuser-rate", "0.25", "--absent-rate", "0.2"],
+    ),
+}
+#: A made-up RES set: the ground truth eroded by this many pixels (drawn per view).
+ERODE_PX = (2, 3)
+#: Parts of the room the copy links to as they are.
+LINKED = (
+    "cameras.json",
+    "features",
+    "gaussian_ids.npy",
+    "ids",
+    "images",
+    "instances.json",
+    "point_cloud.ply",
+    "split.json",
+    "text_embeddings.json",
+    "transforms_test.json",
+    "transforms_train.json",
+)
+
+
+def _ids(room: Path, view: str) -> np.ndarray:
+    import cv2
+
+    ids = cv2.imread(str(room / "ids" / f"{view}.png"), cv2.IMREAD_UNCHANGED)
+    if ids is None:
+        raise FileNotFoundError(room / "ids" / f"{view}.png")
+    return ids.astype(np.int32)  # [H, W]
+
+
+def _write_mask(path: Path, m: np.ndarray) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), m.astype(np.uint8) * 255)
+
+
+def extend_room(src: Path, out: Path, prompts=THIN_PROMPTS) -> Path:
+    """A copy of the room at `out` (new directory) with `prompts` added (see the module doc)."""
+    src, out = Path(src).resolve(), Path(out)
+    out.mkdir(parents=True)
+    for name in LINKED:
+        if (src / name).exists():
+            (out / name).symlink_to(src / name)
+    split = json.loads((src / "split.json").read_text())
+    plist = json.loads((src / "prompts.json").read_text())
+    (out / "eval" / "masks").mkdir(parents=True)
+    for p in plist:
+        (out / "eval" / "masks" / p["id"]).symlink_to(src / "eval" / "masks" / p["id"])
+    for pid, text, targets, kind in prompts:
+        views = []
+        for v in split["test"]:
+            m = np.isin(_ids(src, v), targets)
+            if m.mean() >= MIN_FRAC:
+                views.append(v)
+                _write_mask(out / "eval" / "masks" / pid / f"{v}.png", m)
+        plist.append(
+            {"id": pid, "text": text, "targets": targets, "kind": kind, "test_views": views}
+        )
+    (out / "prompts.json").write_text(json.dumps(plist, indent=1))
+    return out
+
+
+def _tool_room(room: Path, prompts: list[dict], at: Path) -> Path:
+    """A room the tools can read holding only `prompts` (the tools answer every prompt)."""
+    at.mkdir()
+    for name in ("ids", "images", "instances.json", "split.json"):
+        (at / name).symlink_to((room / name).resolve())
+    (at / "prompts.json").write_text(json.dumps(prompts))
+    return at
+
+
+def eroded_masks(room: Path, out: Path, seed: int = 0) -> None:
+    """Every prompt's training-view ground truth eroded by 2-3 px (drawn per prompt and view),
+    where the targets cover >= 0.5% of the view and something survives."""
+    import cv2
+
+    split = json.loads((room / "split.json").read_text())
+    for p in json.loads((room / "prompts.json").read_text()):
+        for v in split["train"]:
+            m = np.isin(_ids(room, v), p["targets"])
+            if m.mean() < MIN_FRAC:
+                continue
+            key = [seed, zlib.crc32(p["id"].encode()), zlib.crc32(v.encode())]
+            rng = np.random.default_rng(key)
+            r = int(rng.integers(ERODE_PX[0], ERODE_PX[1] + 1))
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+            e = cv2.erode(m.astype(np.uint8), k) > 0
+            if e.any():
+                _write_mask(out / p["id"] / f"{v}.png", e)
+
+
+def add_res(room: Path, src: Path, name: str, tools: Path, seed: int = 0) -> Path:
+    """RES set `name` for the extended `room` (from the room `src`): the room's own masks of its
+    prompts linked, the added prompts' masks made by the set's tool; 'eroded' is made here for
+    every prompt."""
+    room, src = Path(room), Path(src).resolve()
+    out = room / name
+    out.mkdir()
+    if name == "eroded":
+        eroded_masks(room, out, seed)
+        return out
+    tool, opts = RES_SETS[name]
+    own = {p["id"] for p in json.loads((src / "prompts.json").read_text())}
+    added = [p for p in json.loads((room / "prompts.json").read_text()) if p["id"] not in own]
+    for pid in sorted(own):
+        if (src / name / pid).is_dir():
+            (out / pid).symlink_to(src / name / pid)
+    with tempfile.TemporaryDirectory() as t:
+        tr = _tool_room(room, added, Path(t) / "room")
+        made = Path(t) / "made"
+        cmd = [sys.executable, str(Path(tools) / tool), str(tr), "--out", str(made)]
+        subprocess.run([*cmd, "--seed", str(seed), *opts], check=True, stdout=subprocess.DEVNULL)
+        for p in added:
+            if (made / p["id"]).is_dir():
+                (made / p["id"]).rename(out / p["id"])
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("src", type=Path, help="the dev room (read only)")
+    ap.add_argument("out", type=Path, help="new directory for the extended copy")
+    ap.add_argument("--res", default="res,res-correlated,eroded", help="RES sets to make")
+    ap.add_argument("--tools", type=Path, help="the room tools (default: SRC/../tools)")
+    a = ap.parse_args(argv)
+    room = extend_room(a.src, a.out)
+    for name in [s for s in a.res.split(",") if s]:
+        add_res(room, a.src, name, a.tools or Path(a.src).resolve().parent / "tools")
+        print(f"{name}: {len(list((room / name).iterdir()))} prompts")
+    for p in json.loads((room / "prompts.json").read_text())[-len(THIN_PROMPTS) :]:
+        gt = room / "eval" / "masks" / p["id"]
+        areas = [int(read_mask(gt / f"{v}.png").sum()) for v in p["test_views"]]
+        print(f"{p['id']} {p['text']!r}: {len(p['test_views'])} test views, {areas} px")
+
+
+if __name__ == "__main__":
+    main()
