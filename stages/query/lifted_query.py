@@ -6,12 +6,13 @@ with overlays, the selection artifact (recording the views and evidence used), t
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from stages.core.artifacts import input_digest, write_png
-from stages.core.errors import GoiError
+from stages.core.errors import GoiError, GoiWarning
 from stages.core.files import make_dir
 from stages.core.report import SILENT, Report
 from stages.query.lifted import LiftedAnswer, MaskSource, lift_prompt, lifted_masks
@@ -39,7 +40,12 @@ def answer_prompt(
 ) -> LiftedAnswer:
     """The lifted answer; with `need_positive` (a plane is to be stored from it) refused when
     no lifted mask has a positive pixel."""
-    ans = lift_prompt(renderer, scene.views("train"), source, prompt, text, hp, lp, report=report)
+    with warnings.catch_warnings():
+        if need_positive:  # an empty answer is refused below: its warning would say it twice
+            warnings.simplefilter("ignore", GoiWarning)
+        ans = lift_prompt(
+            renderer, scene.views("train"), source, prompt, text, hp, lp, report=report
+        )
     if need_positive:
         require_positive_evidence(ans, source.source)
     rec = ans.record(lp)

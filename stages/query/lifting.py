@@ -250,7 +250,8 @@ def decide(
     # part's footprint) is in when its codebook entry, over all its Gaussians, is put partly in
     # too: the masks and the field agree on it (step 4 of the module doc)
     share = np.divide(S1, E, out=np.zeros_like(E), where=evident)  # [G]
-    entry_share = np.divide(a, a + b, out=np.zeros_like(a), where=a + b >= 1.0)  # [N]
+    # (bincount of no Gaussians is int64, whatever the weights)
+    entry_share = np.divide(a, a + b, out=np.zeros(n), where=a + b >= 1.0)  # [N]
     partly = seen & (share >= PARTLY_IN) & (entry_share[entry] >= ENTRY_PARTLY_IN)
     sel = np.where(evident, vote | partly, seen & entry_in[entry])
     return sel, evident
