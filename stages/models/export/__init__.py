@@ -5,7 +5,9 @@ Each SOURCE is a checkpoint directory, recognised by its config.json (safetensor
 - a sentence-transformers checkpoint (modules.json): a text encoder (`sentence`);
 - a CLIPSeg checkpoint: a single-model RES, `res.onnx` (`clipseg`);
 - a Grounding DINO and a SAM checkpoint, together: a Grounded-SAM RES, `detector.onnx`,
-  `sam_encoder.onnx` and `sam_decoder.onnx` (`grounding_dino`, `sam`).
+  `sam_encoder.onnx` and `sam_decoder.onnx` (`grounding_dino`, `sam`). In place of the SAM
+  checkpoint, a directory holding a SAM already in segment-anything's ONNX layout (no
+  config.json; an encoder and a decoder .onnx) is copied in as it is (`sam_onnx`).
 A bundle holds at most one encoder source and one RES. Every source is read and checked before
 anything is exported (its config, weights and tokenizer, then the model itself is loaded);
 every exported ONNX file is run once with onnxruntime and compared with
@@ -88,13 +90,15 @@ class ModelExportRun:
 @dataclass
 class Source:
     path: Path
-    kind: str  # clip | sentence | detector | sam | clipseg
+    kind: str  # clip | sentence | detector | sam | sam-onnx | clipseg
     config: dict
     tokenizer: str | None = None  # tokenizer.json text
     modules: list | None = None  # sentence-transformers' modules.json
     model: Any = None  # the loaded transformers model, until it is exported
 
     def load(self) -> None:
+        if self.kind == "sam-onnx":  # ONNX graphs, checked by find_pair already
+            return
         cls, what = CLASSES[self.kind]
         self.model = load_model(getattr(transformers(), cls), self.path, what)
 
@@ -106,9 +110,18 @@ class Source:
 
 def _source(path: Path, opts: ModelExportParams) -> Source:
     """What a checkpoint directory is, with its weights and tokenizer checked."""
+    from stages.models.export.sam_onnx import find_pair, is_sam_onnx
+
     src = Path(path)
     if not src.is_dir():
         raise GoiError(f"SOURCE: {src} is not a checkpoint directory")
+    if is_sam_onnx(src):
+        size = find_pair(src)[2]  # the layout is checked before anything is exported
+        if opts.sam_size and opts.sam_size != size:
+            raise GoiError(
+                f"--sam-size: {src} is an ONNX SAM fixed at {size}; it cannot be resized"
+            )
+        return Source(src, "sam-onnx", {})
     cfg = checkpoint_json(src / "config.json")
     if not isinstance(cfg, dict):
         raise GoiError(f"{src / 'config.json'}: expected a JSON object")
@@ -145,7 +158,7 @@ def _plan(sources: list[Source]) -> dict[str, Source]:
     """The sources by role; at most one encoder and one RES, and a detector goes with SAM."""
     by_kind: dict[str, Source] = {}
     for s in sources:
-        role = "encoder" if s.kind in ("clip", "sentence") else s.kind
+        role = {"clip": "encoder", "sentence": "encoder", "sam-onnx": "sam"}.get(s.kind, s.kind)
         if role in by_kind:
             raise GoiError(
                 f"SOURCE: {by_kind[role].path} and {s.path} are both {role} checkpoints; a "
@@ -216,9 +229,15 @@ def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report:
         canvas = (opts.detector_height, opts.detector_width)
         det, det_check = export_detector(d.take(), d.path, tmp, d.tokenizer, canvas, opts.opset)
         done({"export_checks": {"detector.onnx": det_check}})
-        enc_spec, dec_spec, sam_checks = export_sam(
-            s.take(), s.path, tmp, opts.sam_size, opts.opset
-        )
+        if s.kind == "sam-onnx":
+            from stages.models.export.sam_onnx import import_sam_onnx
+
+            enc_spec, dec_spec = import_sam_onnx(s.path, tmp)
+            sam_checks: dict = {}
+        else:
+            enc_spec, dec_spec, sam_checks = export_sam(
+                s.take(), s.path, tmp, opts.sam_size, opts.opset
+            )
         grounded = {
             "detector": det,
             "sam_encoder": enc_spec,
