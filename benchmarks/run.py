@@ -386,6 +386,12 @@ def suite_models(repeat: int, tmp: Path) -> dict[str, float]:
     return models(repeat, tmp, median_s)
 
 
+def suite_res_index(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.models import suite_res_index as run
+
+    return run(repeat, tmp, median_s)
+
+
 def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, float]:  # noqa: ANN001
     """The lifted mode: one view's mask lifted (projection, binning and the tile walk), and a
     prompt with K = 8 mask files given (lifting all 8, fusion, the OSH on the evidence, and the
@@ -428,6 +434,7 @@ SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "losses": suite_losses,
     "scale": suite_scale,
     "models": suite_models,
+    "res-index": suite_res_index,
 }
 
 
