@@ -4,7 +4,8 @@
 
 Suites: raster, pooled (the pooled blend cache at 3M Gaussians), field, query (goi's own
 stages), models (the RES models at their real size, random weights, exported and timed in
-onnxruntime; benchmarks/models.py) and index (prompts from a per-scene RES index on the dev
+onnxruntime; benchmarks/models.py), res-index (the RES split per view: image side, prompt
+side; benchmarks/models.py) and lifted-index (prompts from a per-scene RES index on the dev
 room against the whole RES per view and against the paper's route; benchmarks/index.py).
 
 Figures are measured, never asserted: tests check behaviour, this checks speed.
@@ -387,7 +388,13 @@ def suite_models(repeat: int, tmp: Path) -> dict[str, float]:
     return models(repeat, tmp, median_s)
 
 
-def suite_index(repeat: int, tmp: Path) -> dict[str, float]:
+def suite_res_index(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.models import suite_res_index as run
+
+    return run(repeat, tmp, median_s)
+
+
+def suite_lifted_index(repeat: int, tmp: Path) -> dict[str, float]:
     from benchmarks.index import suite_index as index
 
     return index(repeat, tmp, median_s)
@@ -435,7 +442,8 @@ SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "losses": suite_losses,
     "scale": suite_scale,
     "models": suite_models,
-    "index": suite_index,
+    "res-index": suite_res_index,
+    "lifted-index": suite_lifted_index,
 }
 
 

@@ -3,10 +3,11 @@
 The I/O contract (docs/models.md): the image encoder takes [1, 3, H, W] float32 (normalised as
 the manifest says) and returns dense features [1, D, h, w]; the text encoder takes token ids
 [1, L] int64 (and optionally an attention mask) and returns [1, D]. A bundle's RES is either a
-single model (`res`: image + prompt -> mask scores, e.g. CLIPSeg) or a Grounded-SAM pipeline
-(`grounded`: detector + SAM, `stages.models.grounded`). goi checks each model's inputs and
-outputs against the manifest before running it. No custom-operator library is ever registered,
-and manifest paths may not leave the bundle directory.
+single model (`res`: image + prompt -> mask scores, e.g. CLIPSeg), a Grounded-SAM pipeline
+(`grounded`: Grounding DINO + SAM, `stages.models.grounded`) or OWLv2 + SAM (`owl_sam`,
+`stages.models.owl`), the last split into an image side and a prompt side. goi checks each
+model's inputs and outputs against the manifest before running it. No custom-operator library
+is ever registered, and manifest paths may not leave the bundle directory.
 """
 
 from __future__ import annotations
@@ -27,6 +28,10 @@ from stages.core.files import read_json
 from stages.models import res_processing as rp
 from stages.models.grounded import GroundedSam, Grounding, ResPrompt, check_spec
 from stages.models.onnx_io import Tokens, check_inputs_named, check_io, inside, session
+from stages.models.owl import OwlSam, check_owl_spec
+
+#: The manifest's RES sections; a bundle has at most one.
+RES_KINDS = ("res", "grounded", "owl_sam")
 
 MANIFEST = "manifest.json"
 #: How an image is resized to a model's `size`: OpenCV's area filter (schema 1.0's only way),
@@ -140,14 +145,22 @@ class Bundle:
     def _grounded(self) -> GroundedSam:
         return GroundedSam(self.root, self.manifest["grounded"], self.where)
 
+    @cached_property
+    def _owl_sam(self) -> OwlSam:
+        return OwlSam(self.root, self.manifest["owl_sam"], self.where)
+
     @property
     def has_res(self) -> bool:
-        return "res" in self.manifest or "grounded" in self.manifest
+        return any(k in self.manifest for k in RES_KINDS)
 
     @property
     def res_kind(self) -> str | None:
-        """'grounded' (detector + SAM), 'model' (a single RES model) or None."""
-        return "grounded" if "grounded" in self.manifest else "model" if self.has_res else None
+        """'grounded' (Grounding DINO + SAM), 'owl_sam' (OWLv2 + SAM), 'model' (a single RES
+        model) or None."""
+        for kind in ("grounded", "owl_sam"):
+            if kind in self.manifest:
+                return kind
+        return "model" if self.has_res else None
 
     def check_res(self) -> None:
         """Open the RES models and check every tensor the manifest names (cheap next to a
@@ -156,6 +169,8 @@ class Bundle:
             self._spec("res", "a referring-segmentation model; pass --res-masks DIR")
         if self.res_kind == "grounded":
             self._grounded.check()
+        elif self.res_kind == "owl_sam":
+            self._owl_sam.check()
         else:
             _ = self._res
 
@@ -166,6 +181,8 @@ class Bundle:
             self._spec("res", "a referring-segmentation model; pass --res-masks DIR")
         if self.res_kind == "grounded":
             return self._grounded.run(rgb, text)
+        if self.res_kind == "owl_sam":
+            return self._owl_sam.run(rgb, text)
         spec = self.manifest["res"]
         sess, tok = self._res
         ids, att = tok.encode(text)
@@ -187,7 +204,7 @@ class Bundle:
         """True when the bundle's RES has a prompt-independent image side worth caching per
         image. A single-model RES (CLIPSeg exported whole) has none: its text enters the graph
         with the image."""
-        return self.res_kind == "grounded"
+        return self.res_kind in ("grounded", "owl_sam")
 
     def res_image_side_spec(self) -> dict[str, tuple[tuple[int, ...], str]]:
         """key -> (shape, numpy dtype name) of every array `res_image_side` returns, fixed per
@@ -195,6 +212,8 @@ class Bundle:
         self.check_res()
         if self.res_kind == "grounded":
             return self._grounded.image_side_spec()
+        if self.res_kind == "owl_sam":
+            return self._owl_sam.image_side_spec()
         return {}
 
     def res_image_side(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
@@ -203,6 +222,8 @@ class Bundle:
         self.check_res()
         if self.res_kind == "grounded":
             return self._grounded.image_side(rgb)
+        if self.res_kind == "owl_sam":
+            return self._owl_sam.image_side(rgb)
         return {}
 
     def res_prompt(self, text: str) -> ResPrompt:
@@ -210,6 +231,8 @@ class Bundle:
         self.check_res()
         if self.res_kind == "grounded":
             return self._grounded.prompt(text)
+        if self.res_kind == "owl_sam":
+            return self._owl_sam.prompt(text)
         ids, att = self._res[1].encode(text)
         return ResPrompt(text, ids, att)
 
@@ -222,8 +245,8 @@ class Bundle:
     ) -> Grounding:
         """The RES answer from the cached image side, equal to `ground(rgb, prompt.text)`
         (tested; the float16 image side moves a few pixels at the mask threshold).
-        hw = (H, W) of the original image. Grounding DINO and a whole single RES model run on
-        the image itself and need `rgb`."""
+        hw = (H, W) of the original image. OWLv2 + SAM needs nothing else; Grounding DINO and a
+        whole single RES model run on the image itself and need `rgb`."""
         self.check_res()
         hw = (int(hw[0]), int(hw[1]))
         want = self.res_image_side_spec()
@@ -235,6 +258,8 @@ class Bundle:
                     f"{self.where}: the RES image side's '{key}' is {found}, expected "
                     f"{list(shape)} (an index made with another bundle?)"
                 )
+        if self.res_kind == "owl_sam":
+            return self._owl_sam.from_image_side(image_side, hw, prompt)
         if rgb is None:
             raise GoiError(
                 f"{self.where}: this bundle's RES ({self.res_kind}) runs on the image itself; "
@@ -285,14 +310,19 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
     manifest = read_json(mf)
     validate_json(manifest, "goi.bundle", str(mf))
     encoders = [k for k in ("image_encoder", "text_encoder") if k in manifest]
-    if not encoders and "res" not in manifest and "grounded" not in manifest:
+    res_kinds = [k for k in RES_KINDS if k in manifest]
+    if not encoders and not res_kinds:
         raise GoiError(
-            f"{mf}: needs at least one of 'image_encoder', 'text_encoder', 'res' and 'grounded'"
+            f"{mf}: needs at least one of 'image_encoder', 'text_encoder', 'res', 'grounded' "
+            "and 'owl_sam'"
         )
     if encoders and "feature_dim" not in manifest:
         raise GoiError(f"{mf}: field 'feature_dim' is missing (needed with '{encoders[0]}')")
-    if "res" in manifest and "grounded" in manifest:
-        raise GoiError(f"{mf}: a bundle has one RES: either 'res' or 'grounded', not both")
+    if len(res_kinds) > 1:
+        raise GoiError(
+            f"{mf}: a bundle has one RES: one of 'res', 'grounded' and 'owl_sam', not "
+            f"{' and '.join(repr(k) for k in res_kinds)}"
+        )
     res = manifest.get("res")
     if res is not None and not res.get("tokenizer") and "text_encoder" not in manifest:
         raise GoiError(
@@ -310,6 +340,8 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
             _tokens_spec(root, tok, f"{mf}: {key}.tokenizer")
     if "grounded" in manifest:
         check_spec(root, manifest["grounded"], str(mf))
+    if "owl_sam" in manifest:
+        check_owl_spec(root, manifest["owl_sam"], str(mf))
     return Bundle(root, manifest)
 
 
