@@ -5,7 +5,6 @@ import json
 import shutil
 import time
 import warnings
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -17,10 +16,9 @@ from stages.core.errors import GoiError
 from stages.models.bundle import load_bundle
 from stages.models.export.sam_onnx import find_pair, import_sam_onnx
 from stages.models.grounded import Sam
+from tests.helpers import DEV_ROOM
 
-ROOM = Path(__file__).resolve().parents[3] / "shared" / "dev-room"
-if not ROOM.is_dir():
-    ROOM = Path("/work/shared/dev-room")
+ROOM = DEV_ROOM
 #: Eight training views around the room's loop; the four largest furniture instances of each.
 VIEWS = ("v000", "v005", "v013", "v020", "v027", "v033", "v041", "v047")
 

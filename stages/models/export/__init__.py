@@ -3,7 +3,9 @@
 Each SOURCE is a checkpoint directory, recognised by its config.json (safetensors weights only):
 - a CLIP checkpoint: a dense MaskCLIP image encoder and the text encoder (`clip`);
 - a sentence-transformers checkpoint (modules.json): a text encoder (`sentence`);
-- a CLIPSeg checkpoint: a single-model RES, `res.onnx` (`clipseg`);
+- a CLIPSeg checkpoint: a RES split into `clipseg_image.onnx`, `clipseg_text.onnx` and
+  `clipseg_decoder.onnx` (`clipseg_split`), or with --clipseg-whole one graph, `res.onnx`
+  (`clipseg`);
 - an OWLv2 and a SAM checkpoint, together: OWLv2 + SAM, split into an image side and a prompt
   side, `owl_image.onnx`, `owl_text.onnx`, `sam_encoder.onnx`, `sam_decoder.onnx` (`owlv2`);
 - a Grounding DINO and a SAM checkpoint, together: a Grounded-SAM RES, `detector.onnx`,
@@ -85,6 +87,10 @@ class ModelExportParams:
     mask_threshold: Annotated[float, Range(ge=-50, le=50)] = 0.0
     """Grounded-SAM and OWLv2 + SAM: a pixel is in a box's mask when SAM's mask logit exceeds
     this."""
+    clipseg_whole: bool = False
+    """CLIPSeg only: export it as one graph (`res.onnx`, the layout before the RES split)
+    instead of split into its vision activations, text and conditional-decoder graphs
+    (`clipseg`, whose image side the RES index caches; the same masks)."""
     res_threshold: Annotated[float, FRACTION] = 0.4
     """CLIPSeg: a pixel is in the mask when its probability exceeds this."""
     opset: Annotated[int, Range(ge=14, le=23)] = 17
@@ -231,11 +237,13 @@ def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report:
         done(export_sentence(enc.take(), enc.path, tmp, enc.tokenizer, enc.modules, opts.opset))
     if "clipseg" in plan:
         from stages.models.export.clipseg import export_clipseg
+        from stages.models.export.clipseg_split import export_clipseg_split
 
         s = plan["clipseg"]
         assert s.tokenizer is not None
         thr = opts.res_threshold
-        done(export_clipseg(s.take(), s.path, tmp, s.tokenizer, thr, opts.opset))
+        how = export_clipseg if opts.clipseg_whole else export_clipseg_split
+        done(how(s.take(), s.path, tmp, s.tokenizer, thr, opts.opset))
     if "detector" in plan or "owl" in plan:
         from stages.models.export.grounding_dino import export_detector
         from stages.models.export.owlv2 import export_owlv2

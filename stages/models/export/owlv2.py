@@ -25,7 +25,7 @@ from stages.models.export.grounding_dino import check_image
 from stages.models.onnx_io import Tokens
 
 IMAGE_OUTPUTS = ("class_embeds", "logit_shift", "logit_scale", "pred_boxes", "objectness")
-#: OWLv2's text queries are at most 16 tokens (its position embeddings).
+#: OWLv2's processor statistics (CLIP's), when preprocessor_config.json does not say.
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
 
