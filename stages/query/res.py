@@ -141,8 +141,10 @@ class ResIndexed:
 
     def mask(self, cam: Camera) -> np.ndarray:
         if cam.name not in self.computed:
-            # Grounding DINO meets the text early: its bundles also need the photo itself
-            rgb = self.scene.load_image(cam) if self.bundle.res_kind == "grounded" else None
+            # only OWLv2 + SAM answers from the image side alone; Grounding DINO meets the text
+            # early, so its bundles (and a RES exported whole) also need the photo itself
+            photo = self.bundle.res_kind != "owl_sam"
+            rgb = self.scene.load_image(cam) if photo else None
             side = self.index.image_side(cam.name)
             g = self.bundle.res_from_image_side(side, (cam.height, cam.width), self._prompt, rgb)
             self.computed[cam.name] = g.mask

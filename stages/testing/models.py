@@ -14,6 +14,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+#: OWLv2's processor statistics (CLIP's).
+OWL_STATS = {
+    "image_mean": [0.48145466, 0.4578275, 0.40821073],
+    "image_std": [0.26862954, 0.26130258, 0.27577711],
+}
 IMAGENET = {"image_mean": [0.485, 0.456, 0.406], "image_std": [0.229, 0.224, 0.225]}
 #: The words of the test tokenizers; the detector's sit at bert-base-uncased's special ids.
 WORDS = ["a", "the", "red", "green", "blue", "chair", "sofa", "box", "table", "lamp", "on", "of"]
@@ -187,6 +192,35 @@ def clipseg(real: bool = False, seed: int = 0) -> Any:
     return realistic_init(model, seed)
 
 
+def owlv2(real: bool = False, seed: int = 0) -> Any:
+    """Owlv2ForObjectDetection: tiny (64 px, 16 patches), or
+    google/owlv2-base-patch16-ensemble's config (ViT-B/16 at 960, CLIP's text tower, 16 tokens)."""
+    import torch
+    from transformers import Owlv2Config, Owlv2ForObjectDetection
+
+    if real:
+        cfg = Owlv2Config(
+            text_config=dict(max_position_embeddings=16),
+            vision_config=dict(image_size=960, patch_size=16),
+        )
+    else:
+        cfg = Owlv2Config(
+            text_config=dict(
+                vocab_size=100, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
+                num_attention_heads=4, max_position_embeddings=16, bos_token_id=98,
+                eos_token_id=99, pad_token_id=0,
+            ),
+            vision_config=dict(
+                hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4,
+                image_size=64, patch_size=16,
+            ),
+            projection_dim=32,
+        )  # fmt: skip
+    torch.manual_seed(seed)
+    model = Owlv2ForObjectDetection._from_config(cfg, attn_implementation="eager").eval()
+    return realistic_init(model, seed)
+
+
 def clip_vit_b16(seed: int = 0) -> Any:
     """CLIPModel at openai/clip-vit-base-patch16's configuration (the benchmarks' baseline)."""
     import torch
@@ -225,5 +259,8 @@ def checkpoints(root: Path, real: bool = False, sam_size: int = 128) -> dict[str
         "sam": save_checkpoint(sam(real, sam_size), root / "sam"),
         "clipseg": save_checkpoint(
             clipseg(real), root / "clipseg", clip_tokenizer(clipseg_vocab), {"size": size}
+        ),
+        "owlv2": save_checkpoint(
+            owlv2(real), root / "owlv2", clip_tokenizer(clipseg_vocab), OWL_STATS
         ),
     }

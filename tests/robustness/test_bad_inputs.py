@@ -407,11 +407,6 @@ CASES = [
         ("outside the bundle",),
     ),  # fmt: skip
     Case(
-        "RES masks all empty",
-        _res(lambda d: [cv2.imwrite(str(f), np.zeros((36, 48), np.uint8)) for f in d.glob("*")]),
-        ("RES mask", "empty"),
-    ),  # fmt: skip
-    Case(
         "RES mask directory without masks",
         _res(lambda d: [f.unlink() for f in d.glob("*")]),
         ("--res-masks", "no <view>.png"),

@@ -3,9 +3,15 @@
 Each SOURCE is a checkpoint directory, recognised by its config.json (safetensors weights only):
 - a CLIP checkpoint: a dense MaskCLIP image encoder and the text encoder (`clip`);
 - a sentence-transformers checkpoint (modules.json): a text encoder (`sentence`);
-- a CLIPSeg checkpoint: a single-model RES, `res.onnx` (`clipseg`);
+- a CLIPSeg checkpoint: a RES split into `clipseg_image.onnx`, `clipseg_text.onnx` and
+  `clipseg_decoder.onnx` (`clipseg_split`), or with --clipseg-whole one graph, `res.onnx`
+  (`clipseg`);
+- an OWLv2 and a SAM checkpoint, together: OWLv2 + SAM, split into an image side and a prompt
+  side, `owl_image.onnx`, `owl_text.onnx`, `sam_encoder.onnx`, `sam_decoder.onnx` (`owlv2`);
 - a Grounding DINO and a SAM checkpoint, together: a Grounded-SAM RES, `detector.onnx`,
-  `sam_encoder.onnx` and `sam_decoder.onnx` (`grounding_dino`, `sam`).
+  `sam_encoder.onnx` and `sam_decoder.onnx` (`grounding_dino`, `sam`). In place of the SAM
+  checkpoint, a directory holding a SAM already in segment-anything's ONNX layout (no
+  config.json; an encoder and a decoder .onnx) is copied in as it is (`sam_onnx`).
 A bundle holds at most one encoder source and one RES. Every source is read and checked before
 anything is exported (its config, weights and tokenizer, then the model itself is loaded);
 every exported ONNX file is run once with onnxruntime and compared with
@@ -39,12 +45,19 @@ from stages.models.export.common import (
 )
 
 #: config.json model_type -> what goi makes of the checkpoint.
-KINDS = {"clip": "clip", "grounding-dino": "detector", "sam": "sam", "clipseg": "clipseg"}
+KINDS = {
+    "clip": "clip",
+    "grounding-dino": "detector",
+    "owlv2": "owl",
+    "sam": "sam",
+    "clipseg": "clipseg",
+}
 #: kind -> the transformers class it is loaded with, and its name in messages.
 CLASSES = {
     "clip": ("CLIPModel", "CLIP"),
     "sentence": ("AutoModel", "sentence-transformers"),
     "detector": ("GroundingDinoForObjectDetection", "Grounding DINO"),
+    "owl": ("Owlv2ForObjectDetection", "OWLv2"),
     "sam": ("SamModel", "SAM"),
     "clipseg": ("CLIPSegForImageSegmentation", "CLIPSeg"),
 }
@@ -66,12 +79,19 @@ class ModelExportParams:
     """SAM only: side of the encoder's square input (a multiple of 16). 0: the checkpoint's own
     (1024). Smaller resamples the position embeddings: faster, but SAM was not trained so."""
     box_threshold: Annotated[float, FRACTION] = 0.3
-    """Grounded-SAM: a detected box is used when its best token probability exceeds this
-    (GOI's value)."""
+    """Grounded-SAM and OWLv2 + SAM: a detected box is used when its score (Grounding DINO: its
+    best token probability; OWLv2: its class probability) exceeds this (GOI's value for
+    Grounding DINO; OWLv2's own examples use 0.1-0.2)."""
     max_boxes: Annotated[int, Range(ge=1, le=100)] = 8
-    """Grounded-SAM: at most this many boxes per image, the best scoring, prompt SAM."""
+    """Grounded-SAM and OWLv2 + SAM: at most this many boxes per image, the best scoring,
+    prompt SAM."""
     mask_threshold: Annotated[float, Range(ge=-50, le=50)] = 0.0
-    """Grounded-SAM: a pixel is in a box's mask when SAM's mask logit exceeds this."""
+    """Grounded-SAM and OWLv2 + SAM: a pixel is in a box's mask when SAM's mask logit exceeds
+    this."""
+    clipseg_whole: bool = False
+    """CLIPSeg only: export it as one graph (`res.onnx`, the layout before the RES split)
+    instead of split into its vision activations, text and conditional-decoder graphs
+    (`clipseg`, whose image side the RES index caches; the same masks)."""
     res_threshold: Annotated[float, FRACTION] = 0.4
     """CLIPSeg: a pixel is in the mask when its probability exceeds this."""
     opset: Annotated[int, Range(ge=14, le=23)] = 17
@@ -94,13 +114,15 @@ class ModelExportRun:
 @dataclass
 class Source:
     path: Path
-    kind: str  # clip | sentence | detector | sam | clipseg
+    kind: str  # clip | sentence | detector | sam | sam-onnx | clipseg
     config: dict
     tokenizer: str | None = None  # tokenizer.json text
     modules: list | None = None  # sentence-transformers' modules.json
     model: Any = None  # the loaded transformers model, until it is exported
 
     def load(self) -> None:
+        if self.kind == "sam-onnx":  # ONNX graphs, checked by find_pair already
+            return
         cls, what = CLASSES[self.kind]
         self.model = load_model(getattr(transformers(), cls), self.path, what)
 
@@ -112,18 +134,22 @@ class Source:
 
 def _source(path: Path, opts: ModelExportParams) -> Source:
     """What a checkpoint directory is, with its weights and tokenizer checked."""
+    from stages.models.export.sam_onnx import find_pair, is_sam_onnx
+
     src = Path(path)
     if not src.is_dir():
         raise GoiError(f"SOURCE: {src} is not a checkpoint directory")
+    if is_sam_onnx(src):
+        size = find_pair(src)[2]  # the layout is checked before anything is exported
+        if opts.sam_size and opts.sam_size != size:
+            raise GoiError(
+                f"--sam-size: {src} is an ONNX SAM fixed at {size}; it cannot be resized"
+            )
+        return Source(src, "sam-onnx", {})
     cfg = checkpoint_json(src / "config.json")
     if not isinstance(cfg, dict):
         raise GoiError(f"{src / 'config.json'}: expected a JSON object")
     model_type = cfg.get("model_type")
-    if model_type == "owlv2":
-        raise GoiError(
-            f"{src / 'config.json'}: OWLv2 is not supported; goi's detector is Grounding DINO "
-            "(docs/models.md says why)"
-        )
     modules = None
     if model_type in KINDS:
         kind = KINDS[model_type]
@@ -134,7 +160,7 @@ def _source(path: Path, opts: ModelExportParams) -> Source:
     else:
         raise GoiError(
             f"{src / 'config.json'}: model_type {model_type!r} is not one goi exports: CLIP, a "
-            "sentence-transformers model (modules.json), Grounding DINO, SAM or CLIPSeg"
+            "sentence-transformers model (modules.json), Grounding DINO, OWLv2, SAM or CLIPSeg"
         )
     has_weights(src)
     s = Source(src, kind, cfg, modules=modules)
@@ -151,21 +177,30 @@ def _plan(sources: list[Source]) -> dict[str, Source]:
     """The sources by role; at most one encoder and one RES, and a detector goes with SAM."""
     by_kind: dict[str, Source] = {}
     for s in sources:
-        role = "encoder" if s.kind in ("clip", "sentence") else s.kind
+        role = {"clip": "encoder", "sentence": "encoder", "sam-onnx": "sam"}.get(s.kind, s.kind)
         if role in by_kind:
             raise GoiError(
                 f"SOURCE: {by_kind[role].path} and {s.path} are both {role} checkpoints; a "
                 "bundle holds one"
             )
         by_kind[role] = s
-    if ("detector" in by_kind) != ("sam" in by_kind):
-        have, need = ("detector", "SAM") if "detector" in by_kind else ("sam", "Grounding DINO")
+    res = [r for r in ("clipseg", "detector", "owl") if r in by_kind]
+    if len(res) > 1:
         raise GoiError(
-            f"SOURCE: {by_kind[have].path} alone makes no RES; Grounded-SAM needs a {need} "
-            "checkpoint too"
+            "SOURCE: a bundle has one RES: CLIPSeg, Grounding DINO + SAM or OWLv2 + SAM, not "
+            f"{' and '.join(by_kind[r].path.name for r in res)}"
         )
-    if "clipseg" in by_kind and "detector" in by_kind:
-        raise GoiError("SOURCE: a bundle has one RES: CLIPSeg or Grounding DINO + SAM, not both")
+    detector = next((r for r in ("detector", "owl") if r in by_kind), None)
+    if detector is not None and "sam" not in by_kind:
+        raise GoiError(
+            f"SOURCE: {by_kind[detector].path} alone makes no RES; a detector needs a SAM "
+            "checkpoint (or a SAM ONNX directory) too"
+        )
+    if "sam" in by_kind and detector is None:
+        raise GoiError(
+            f"SOURCE: {by_kind['sam'].path} alone makes no RES; SAM needs a Grounding DINO or "
+            "an OWLv2 checkpoint too"
+        )
     return by_kind
 
 
@@ -220,32 +255,48 @@ def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report:
         done(export_sentence(enc.take(), enc.path, tmp, enc.tokenizer, enc.modules, opts.opset))
     if "clipseg" in plan:
         from stages.models.export.clipseg import export_clipseg
+        from stages.models.export.clipseg_split import export_clipseg_split
 
         s = plan["clipseg"]
         assert s.tokenizer is not None
         thr = opts.res_threshold
-        done(export_clipseg(s.take(), s.path, tmp, s.tokenizer, thr, opts.opset))
-    if "detector" in plan:
+        how = export_clipseg if opts.clipseg_whole else export_clipseg_split
+        done(how(s.take(), s.path, tmp, s.tokenizer, thr, opts.opset))
+    if "detector" in plan or "owl" in plan:
         from stages.models.export.grounding_dino import export_detector
+        from stages.models.export.owlv2 import export_owlv2
         from stages.models.export.sam import export_sam
 
-        d, s = plan["detector"], plan["sam"]
+        d, s = plan.get("detector") or plan["owl"], plan["sam"]
         assert d.tokenizer is not None
-        canvas = (opts.detector_height, opts.detector_width)
-        det, det_check = export_detector(d.take(), d.path, tmp, d.tokenizer, canvas, opts.opset)
-        done({"export_checks": {"detector.onnx": det_check}})
-        enc_spec, dec_spec, sam_checks = export_sam(
-            s.take(), s.path, tmp, opts.sam_size, opts.opset
-        )
-        grounded = {
-            "detector": det,
+        if d.kind == "owl":
+            owl, owl_checks = export_owlv2(d.take(), d.path, tmp, d.tokenizer, opts.opset)
+            done({"export_checks": owl_checks})
+        else:
+            canvas = (opts.detector_height, opts.detector_width)
+            det, det_check = export_detector(d.take(), d.path, tmp, d.tokenizer, canvas, opts.opset)
+            done({"export_checks": {"detector.onnx": det_check}})
+        if s.kind == "sam-onnx":
+            from stages.models.export.sam_onnx import import_sam_onnx
+
+            enc_spec, dec_spec = import_sam_onnx(s.path, tmp)
+            sam_checks: dict = {}
+        else:
+            enc_spec, dec_spec, sam_checks = export_sam(
+                s.take(), s.path, tmp, opts.sam_size, opts.opset
+            )
+        common = {
             "sam_encoder": enc_spec,
             "sam_decoder": dec_spec,
             "box_threshold": opts.box_threshold,
             "mask_threshold": opts.mask_threshold,
             "max_boxes": opts.max_boxes,
         }
-        done({"grounded": grounded, "export_checks": sam_checks})
+        if d.kind == "owl":
+            section = {"owl_sam": {"image": owl["image"], "text": owl["text"], **common}}
+        else:
+            section = {"grounded": {"detector": det, **common}}
+        done({**section, "export_checks": sam_checks})
     return manifest
 
 
