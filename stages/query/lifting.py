@@ -34,8 +34,8 @@ s0 (nothing of the prompt there). The decision, per prompt:
                core is empty, every view scored 0.007-0.33 and the re-vote silenced all the
                evidence at once (#26). The rounds stop when the confidences stop moving.
   4. thin parts: a Gaussian voted out that the masks still put partly in (S1 >= PARTLY_IN E),
-               and whose codebook entry they put partly in too (summed over the entry's
-               evident Gaussians), is in: erosion by 2-3 px leaves a thin part only 6-32% of
+               and whose codebook entry they put at least ENTRY_PARTLY_IN in (summed over the
+               entry's evident Gaussians), is in: erosion by 2-3 px leaves a thin part only 6-32% of
                its footprint, and the field, not a majority of pixels, says what it is.
   5. guard:    a lifted answer under half the field's own (the OSH's side of the plane) is a
                vote that lost what the masks only graze: the field's answer joins it where the
@@ -61,11 +61,12 @@ from stages.query.osh import Counts, HyperplaneParams
 CONFIDENCE_PRIOR = 10.0
 #: The least confidence a view keeps, relative to the most trusted view's (see `relative`).
 CONFIDENCE_FLOOR = 0.02
-#: Share of a Gaussian's evidence (S1 / E), and of its codebook entry's, from which the masks
-#: count it as partly in (decide: thin structures under eroded masks; measured in
-#: docs/benchmarks.md).
+#: Share of a Gaussian's evidence (S1 / E) from which the masks count it as partly in (decide:
+#: thin structures under eroded masks; lower shares bled into neighbours on dilated masks,
+#: measured in docs/benchmarks.md) ...
 PARTLY_IN = 0.2
-#: ... and of its codebook entry's (a support that one view's mask takes whole stays out).
+#: ... when its codebook entry's share is at least this (a support that one view's mask takes
+#: whole stays out).
 ENTRY_PARTLY_IN = 0.5
 #: The lifted answer disagrees with the field below this share of the field's selection
 #: (`guard`; 0.02 would catch only #26's outright collapse, 19 against 2,225 Gaussians, and
@@ -247,8 +248,8 @@ def decide(
     # an entry decides for its unseen Gaussians once it has a pixel's worth of evidence
     entry_in = np.where(a + b >= 1.0, (a - b) > p.background_bias * (a + b), plane_positive)
     # thin structures: a Gaussian that the masks put partly in (eroded masks cut most of a thin
-    # part's footprint) is in when its codebook entry, over all its Gaussians, is put partly in
-    # too: the masks and the field agree on it (step 4 of the module doc)
+    # part's footprint) is in when its codebook entry, over all its evident Gaussians, is put
+    # mostly in: the masks and the field agree on it (step 4 of the module doc)
     share = np.divide(S1, E, out=np.zeros_like(E), where=evident)  # [G]
     # (bincount of no Gaussians is int64, whatever the weights)
     entry_share = np.divide(a, a + b, out=np.zeros(n), where=a + b >= 1.0)  # [N]
@@ -291,8 +292,9 @@ def guard(
     """[G] selection, and whether it was fused with the field's: when the lifted answer holds
     fewer than COLLAPSE_RATIO of the Gaussians the field selects (#26: 19 against 2,225; a
     palm whose fronds erosion erased: 990 against 4,044) the vote has lost what the masks
-    only graze, not found a smaller object, and the field's answer joins it wherever
-    the masks do not reject it outright (an evident Gaussian with S1 < REJECTED_SHARE E)."""
+    only graze, not found a smaller object, and the field's answer joins it where the masks
+    see it and do not reject it outright (S1 >= REJECTED_SHARE E): a field that selects a
+    whole support must not bring in what no mask claims."""
     n_field = int(field_sel.sum())
     if n_field == 0 or sel.sum() >= COLLAPSE_RATIO * n_field:
         return sel, False
