@@ -1,0 +1,39 @@
+"""The dev room with its thin and small objects added as prompts (made at test time)."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from stages.scene.images import read_mask
+from stages.testing.thin_room import THIN_PROMPTS, eroded_masks, extend_room
+from tests.helpers import DEV_ROOM
+
+pytestmark = pytest.mark.skipif(not DEV_ROOM.is_dir(), reason="the dev room is absent")
+
+
+def test_extended_room_adds_prompts_with_ground_truth_and_eroded_masks(tmp_path):
+    room = extend_room(DEV_ROOM, tmp_path / "room")
+    prompts = json.loads((room / "prompts.json").read_text())
+    own = json.loads((DEV_ROOM / "prompts.json").read_text())
+    assert prompts[: len(own)] == own  # the room's prompts as they are
+    added = {p["id"]: p for p in prompts[len(own) :]}
+    assert list(added) == [p[0] for p in THIN_PROMPTS]
+    guitar = added["t01"]
+    assert guitar["test_views"]  # the guitar covers >= 0.5% of some test views
+    for v in guitar["test_views"]:
+        ids = cv2.imread(str(DEV_ROOM / "ids" / f"{v}.png"), cv2.IMREAD_UNCHANGED)
+        gt = read_mask(room / "eval" / "masks" / "t01" / f"{v}.png")
+        assert (gt == (ids == 23)).all()
+    assert (room / "point_cloud.ply").is_symlink()  # the big parts are linked, not copied
+    # eroded masks (one prompt, to keep the test fast) hold only target pixels
+    (room / "prompts.json").write_text(json.dumps([guitar]))
+    eroded_masks(room, tmp_path / "eroded")
+    files = sorted((tmp_path / "eroded" / "t01").iterdir())
+    assert files
+    for f in files:
+        ids = cv2.imread(str(DEV_ROOM / "ids" / f.name), cv2.IMREAD_UNCHANGED)
+        m = read_mask(f)
+        assert m.any() and not (m & (ids != 23)).any()
+        assert m.sum() < np.sum(ids == 23)
