@@ -41,8 +41,8 @@ from stages.evaluation.room import Prompt, Room, load_room
 from stages.evaluation.variants import (
     FIELD_KIND,
     VARIANTS,
+    Answerers,
     DirectModel,
-    FieldFreeModel,
     Prediction,
     TfccModel,
     VisibilityCache,
@@ -476,15 +476,9 @@ def run_eval(
         f"eval: room {room.dir} ({scene.gaussians.count} Gaussians, {len(room.prompts)} prompts)"
     )
     tfcc, direct = _fit_models(room, features, work, variants, p, timer, report)
-    # one rasterizer and one visibility cache for every lifted variant
-    if tfcc is not None:
-        rast, vis = tfcc.renderer.rast, tfcc.visibility
-    else:
-        rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(scene.gaussians)
-        vis = VisibilityCache(rast)
-    free = FieldFreeModel(rast, {c.name: c for c in scene.views("test")}, vis)
+    models = Answerers.of(scene.gaussians, scene.views("test"), tfcc, direct)
     if bundle is not None and not sources:  # one bundle, its sessions shared by every prompt
-        sources = {p.id: ResModel(bundle, p.text, rast) for p in room.prompts}
+        sources = {p.id: ResModel(bundle, p.text, models.rast) for p in room.prompts}
     with timer("contribution_3d"):
         weight = _visibility(room) if room.gaussian_ids is not None else None
     test = {c.name for c in scene.views("test")}
@@ -531,17 +525,9 @@ def run_eval(
         gts = {v: room.ground_truth(prompt, v) for v in views}
         for variant in variants:
             t0 = time.perf_counter()
-            if variant == "lifted_fieldless":
-                pred = free.predict(prompt.text, source, train, hp, lp, views)
-            elif variant == "lifted":
-                assert tfcc is not None
-                pred = tfcc.predict_lifted(prompt.text, text, source, train, hp, lp, views)
-            elif FIELD_KIND[variant] == "tfcc":
-                assert tfcc is not None
-                pred = tfcc.predict(variant, prompt.text, text, source, train, hp, planes, views)
-            else:
-                assert direct is not None
-                pred = direct.predict(variant, text, source, train, hp, views, p.seed)
+            pred = models.predict(
+                variant, prompt.text, text, source, train, hp, lp, planes, views, p.seed
+            )
             entry = {
                 "text": prompt.text,
                 "kind": prompt.kind,
@@ -559,7 +545,7 @@ def run_eval(
         if run.html is not None:
             with timer("html"):  # doc["timings_s"] is timer.t: the page's own time lands too
                 views_rgb = tfcc.views if tfcc is not None else {}
-                res_figs = _res_figures(sources, doc, rast, scene)
+                res_figs = _res_figures(sources, doc, models.rast, scene)
                 eval_page(Path(run.html), doc, room.prompts, figures, views_rgb, scene, res_figs)
         validate_json(doc, "goi.eval", str(run.out))  # what we write, our reader must accept
         write_json(run.out, doc, force=True)

@@ -39,6 +39,7 @@ from stages.query.res import NothingFound, ResFiles, ResSource, choose_views
 from stages.query.selection import select
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
+from stages.scene.gaussians import Gaussians
 from stages.semantics.decode import COVERED_ALPHA, DecodedView, SemanticRenderer
 from stages.semantics.field import Field
 
@@ -275,3 +276,58 @@ class DirectModel:
         masks = {v: self.views[v].scores(self.field, W, b) > 0 for v in views}
         selected = self.field.seen & (self.gaussians @ W.astype(np.float32) + b > 0)
         return Prediction(masks, selected, info)
+
+
+@dataclass
+class Answerers:
+    """What one scene's chosen variants answer with: the paper's field (TFCC), the direct
+    field (None where no chosen variant needs it) and the scene alone (the field-free mode),
+    sharing one rasterizer and one visibility cache."""
+
+    tfcc: TfccModel | None
+    direct: DirectModel | None
+    free: FieldFreeModel
+
+    @classmethod
+    def of(
+        cls,
+        gaussians: Gaussians,
+        test: list[Camera],
+        tfcc: TfccModel | None,
+        direct: DirectModel | None,
+    ) -> Answerers:
+        if tfcc is not None:
+            rast, vis = tfcc.renderer.rast, tfcc.visibility
+        else:
+            rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(gaussians)
+            vis = VisibilityCache(rast)
+        return cls(tfcc, direct, FieldFreeModel(rast, {c.name: c for c in test}, vis))
+
+    @property
+    def rast(self) -> Rasterizer:
+        return self.free.rast
+
+    def predict(
+        self,
+        variant: str,
+        prompt: str,
+        text: np.ndarray,
+        source: ResSource,
+        train: list[Camera],
+        hp: HyperplaneParams,
+        lp: LiftParams,
+        planes: HyperplaneRun,
+        views: list[str],
+        seed: int,
+    ) -> Prediction:
+        """The variant's answer to a prompt on the test `views`."""
+        if variant == "lifted_fieldless":
+            return self.free.predict(prompt, source, train, hp, lp, views)
+        if variant == "lifted":
+            assert self.tfcc is not None
+            return self.tfcc.predict_lifted(prompt, text, source, train, hp, lp, views)
+        if FIELD_KIND[variant] == "tfcc":
+            assert self.tfcc is not None
+            return self.tfcc.predict(variant, prompt, text, source, train, hp, planes, views)
+        assert self.direct is not None
+        return self.direct.predict(variant, text, source, train, hp, views, seed)

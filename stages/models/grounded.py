@@ -122,16 +122,25 @@ def check_spec(root: Path, spec: dict, where: str) -> None:
     det = spec["detector"]
     _size(det, "grounded.detector", where)
     _stats(det, "grounded.detector", where)
-    tok = det["tokenizer"]
+    check_tokenizer(root, det["tokenizer"], "grounded.detector", where)
+    check_detection(spec, "grounded", where)
+
+
+def check_tokenizer(root: Path, tok: dict, section: str, where: str) -> None:
+    """A detector's tokenizer entry names a Hugging Face tokenizer.json inside the bundle."""
     if tok["kind"] != "huggingface":
         raise GoiError(f"{where}: tokenizer kind {tok['kind']!r} is not supported (huggingface)")
-    inside(root, tok["file"], f"{where}: grounded.detector.tokenizer")
+    inside(root, tok["file"], f"{where}: {section}.tokenizer")
+
+
+def check_detection(spec: dict, section: str, where: str) -> None:
+    """A detector + SAM section's box and mask thresholds and its box budget make sense."""
     for key, lo, hi in (("box_threshold", 0, 1), ("mask_threshold", -math.inf, math.inf)):
         v = float(spec[key])
         if not (math.isfinite(v) and lo <= v <= hi):
-            raise GoiError(f"{where}: field 'grounded.{key}' is {v}, not a number in [{lo}, {hi}]")
+            raise GoiError(f"{where}: field '{section}.{key}' is {v}, not a number in [{lo}, {hi}]")
     if spec["max_boxes"] < 1:
-        raise GoiError(f"{where}: field 'grounded.max_boxes' must be at least 1")
+        raise GoiError(f"{where}: field '{section}.max_boxes' must be at least 1")
 
 
 class Sam:

@@ -10,7 +10,6 @@ an empty mask. SAM is either layout (`grounded.Sam`).
 
 from __future__ import annotations
 
-import math
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,9 @@ from stages.models.grounded import (
     Sam,
     _size,
     _stats,
+    check_detection,
     check_sam_spec,
+    check_tokenizer,
 )
 from stages.models.onnx_io import Tokens, check_inputs_named, check_io, inside, session
 
@@ -51,17 +52,9 @@ def check_owl_spec(root: Path, spec: dict, where: str) -> None:
     if h != w:
         raise GoiError(f"{where}: field 'owl_sam.image.size' must be square, not {[w, h]}")
     _stats(img, "owl_sam.image", where)
-    tok = txt["tokenizer"]
-    if tok["kind"] != "huggingface":
-        raise GoiError(f"{where}: tokenizer kind {tok['kind']!r} is not supported (huggingface)")
-    inside(root, tok["file"], f"{where}: owl_sam.text.tokenizer")
+    check_tokenizer(root, txt["tokenizer"], "owl_sam.text", where)
     check_sam_spec(root, spec["sam_encoder"], spec["sam_decoder"], "owl_sam", where)
-    for key, lo, hi in (("box_threshold", 0, 1), ("mask_threshold", -math.inf, math.inf)):
-        v = float(spec[key])
-        if not (math.isfinite(v) and lo <= v <= hi):
-            raise GoiError(f"{where}: field 'owl_sam.{key}' is {v}, not a number in [{lo}, {hi}]")
-    if spec["max_boxes"] < 1:
-        raise GoiError(f"{where}: field 'owl_sam.max_boxes' must be at least 1")
+    check_detection(spec, "owl_sam", where)
 
 
 class OwlSam:

@@ -55,7 +55,7 @@ from stages.evaluation.pipeline import (
 )
 from stages.evaluation.report import overlay_pair, page_files_dir
 from stages.evaluation.room import Prompt, Room
-from stages.evaluation.variants import FIELD_KIND, TfccModel
+from stages.evaluation.variants import Answerers, TfccModel
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.lifting import LiftParams
 from stages.query.osh import HyperplaneParams
@@ -255,12 +255,9 @@ def run_benchmark(
         wdir = work / name
         _check_work(wdir)
         tfcc, direct = _fit_models(s.room, s.features, wdir, variants, p, timer, report)
-        fitted = tfcc or direct
-        assert fitted is not None
+        models = Answerers.of(s.room.scene.gaussians, s.room.scene.views("test"), tfcc, direct)
         if bundle is not None:
-            sources = {
-                q.id: ResModel(bundle, q.text, fitted.renderer.rast) for q in s.bench.queries
-            }
+            sources = {q.id: ResModel(bundle, q.text, models.rast) for q in s.bench.queries}
         train = s.room.scene.views("train")
         hp = HyperplaneParams(threshold=p.threshold)
         planes = HyperplaneRun(wdir / "hyperplanes.h5", refit=True)
@@ -278,15 +275,9 @@ def run_benchmark(
                 t0 = time.perf_counter()
                 views = prompt.test_views
                 src = sources[prompt.id]
-                if variant == "lifted":
-                    assert tfcc is not None
-                    pred = tfcc.predict_lifted(prompt.text, text, src, train, hp, lp, views)
-                elif FIELD_KIND[variant] == "tfcc":
-                    assert tfcc is not None
-                    pred = tfcc.predict(variant, prompt.text, text, src, train, hp, planes, views)
-                else:
-                    assert direct is not None
-                    pred = direct.predict(variant, text, src, train, hp, views, p.seed)
+                pred = models.predict(
+                    variant, prompt.text, text, src, train, hp, lp, planes, views, p.seed
+                )
                 timer.add(f"query_{variant}", time.perf_counter() - t0)
                 preds[prompt.id] = pred.masks
             with timer("metrics"):
