@@ -35,7 +35,7 @@ def _argv(s, benchmark, out, *extra):
 def test_benchmark_scored_end_to_end(tmp_path, benchmark, capsys):
     s = _make(tmp_path, benchmark)
     out, html = tmp_path / "r.json", tmp_path / "r.html"
-    variants = "full,lifted" if benchmark == "goi-m360" else "full"
+    variants = "full,lifted,lifted_fieldless" if benchmark == "goi-m360" else "full"
     assert main(_argv(s, benchmark, out, "--html", str(html), "--variants", variants)) == 0
     r = json.loads(out.read_text())
     validate_json(r, "goi.eval", str(out))
