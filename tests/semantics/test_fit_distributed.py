@@ -234,5 +234,7 @@ def test_ranks_of_different_goi_versions_are_refused_at_the_rendezvous(fitted, t
     r = torchrun(2, [*args, "--out", str(root / "mixed.h5")], root, script=str(script))
     assert r.returncode != 0
     lines = goi_lines(r.stderr)
-    assert len(lines) == 2 and all("the ranks run different goi versions" in ln for ln in lines)
+    # each rank refuses; torchrun may stop the slower one before its line is out
+    assert 1 <= len(lines) <= 2
+    assert all("the ranks run different goi versions" in ln for ln in lines)
     assert not (root / "mixed.h5").exists()
