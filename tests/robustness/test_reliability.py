@@ -32,7 +32,7 @@ def small(tmp_path_factory):
                  "--out", str(root / "c.h5")]) == 0  # fmt: skip
     s["root"] = root
     s["field_args"] = ["fit-field", *sc, "--features", str(root / "f.h5"),
-                       "--codebook", str(root / "c.h5"), "--iterations", "300",
+                       "--codebook", str(root / "c.h5"), "--iterations", "1500",
                        "--cells-per-view", "64", "--checkpoint-every", "10",
                        "--cache", str(root / "cache.h5")]  # fmt: skip
     assert main([*s["field_args"], "--out", str(root / "ref.h5")]) == 0
