@@ -205,6 +205,21 @@ class Sam:
             )
         return out.astype(np.float32, copy=False)
 
+    def union(
+        self,
+        emb: np.ndarray,
+        boxes: np.ndarray,
+        scores: np.ndarray,
+        hw: tuple[int, int],
+        threshold: float,
+    ) -> Grounding:
+        """A detector + SAM pipeline's answer: the union of SAM's masks of `boxes` [K, 4] on the
+        image embedded as `emb`, each box's logits above `threshold`."""
+        mask = np.zeros(hw, bool)
+        for box in boxes:
+            mask |= self.box_logits(emb, box, hw) > threshold
+        return Grounding(mask, boxes, scores)
+
     def box_logits(self, emb: np.ndarray, box: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
         """One box [4] (x0, y0, x1, y1, pixels of the image) -> SAM's mask logits [H, W]."""
         m = self.sessions[1]
@@ -303,16 +318,6 @@ class GroundedSam:
         thr, k = float(self.spec["box_threshold"]), int(self.spec["max_boxes"])
         return rp.detections(logits[0], boxes[0], rgb.shape[:2], thr, k)
 
-    def masks(
-        self, emb: np.ndarray, boxes: np.ndarray, scores: np.ndarray, hw: tuple[int, int]
-    ) -> Grounding:
-        """The union of SAM's masks of `boxes` [K, 4] on the image embedded as `emb`."""
-        mask = np.zeros(hw, bool)
-        thr = float(self.spec["mask_threshold"])
-        for box in boxes:
-            mask |= self.sam.box_logits(emb, box, hw) > thr
-        return Grounding(mask, boxes, scores)
-
     def image_side_spec(self) -> dict[str, tuple[tuple[int, ...], str]]:
         return {"sam_embedding": (self.sam.embedding_shape(), SIDE_DTYPE)}
 
@@ -327,7 +332,7 @@ class GroundedSam:
         if len(boxes) == 0:
             return Grounding(np.zeros(hw, bool), boxes, scores)
         emb = np.asarray(side["sam_embedding"], np.float32)[None]
-        return self.masks(emb, boxes, scores, hw)
+        return self.sam.union(emb, boxes, scores, hw, float(self.spec["mask_threshold"]))
 
     def run(self, rgb: np.ndarray, prompt: str) -> Grounding:
         """[H, W, 3] uint8 RGB and a prompt -> the RES mask and the boxes it came from."""
@@ -335,4 +340,6 @@ class GroundedSam:
         hw = (int(rgb.shape[0]), int(rgb.shape[1]))
         if len(boxes) == 0:
             return Grounding(np.zeros(hw, bool), boxes, scores)
-        return self.masks(self.sam.embed(rgb), boxes, scores, hw)
+        return self.sam.union(
+            self.sam.embed(rgb), boxes, scores, hw, float(self.spec["mask_threshold"])
+        )

@@ -138,15 +138,6 @@ class OwlSam:
         thr, k = float(self.spec["box_threshold"]), int(self.spec["max_boxes"])
         return rp.owl_detections(logits, np.asarray(side["owl_boxes"]), hw, thr, k)
 
-    def _masks(
-        self, emb: np.ndarray, boxes: np.ndarray, scores: np.ndarray, hw: tuple[int, int]
-    ) -> Grounding:
-        mask = np.zeros(hw, bool)
-        thr = float(self.spec["mask_threshold"])
-        for box in boxes:
-            mask |= self.sam.box_logits(emb, box, hw) > thr
-        return Grounding(mask, boxes, scores)
-
     def from_image_side(
         self, side: dict[str, np.ndarray], hw: tuple[int, int], prompt: ResPrompt
     ) -> Grounding:
@@ -154,7 +145,7 @@ class OwlSam:
         if len(boxes) == 0:
             return Grounding(np.zeros(hw, bool), boxes, scores)
         emb = np.asarray(side["sam_embedding"], np.float32)[None]
-        return self._masks(emb, boxes, scores, hw)
+        return self.sam.union(emb, boxes, scores, hw, float(self.spec["mask_threshold"]))
 
     def run(self, rgb: np.ndarray, text: str) -> Grounding:
         """The whole pipeline on one image, in float32 (SAM only when a box is kept)."""
@@ -162,4 +153,6 @@ class OwlSam:
         boxes, scores = self.detect(self._owl(rgb), hw, self.prompt(text))
         if len(boxes) == 0:
             return Grounding(np.zeros(hw, bool), boxes, scores)
-        return self._masks(self.sam.embed(rgb), boxes, scores, hw)
+        return self.sam.union(
+            self.sam.embed(rgb), boxes, scores, hw, float(self.spec["mask_threshold"])
+        )
