@@ -175,28 +175,6 @@ class VisibilityCache:
 
 
 @dataclass
-class FieldFreeModel:
-    """The field-free lifted mode: the scene's rasterizer alone."""
-
-    rast: Rasterizer
-    cams: dict[str, Camera]  # test view -> camera
-    visibility: VisibilityCache
-
-    def predict(
-        self,
-        prompt: str,
-        source: ResSource,
-        train: list[Camera],
-        hp: HyperplaneParams,
-        lp: LiftParams,
-        views: list[str],
-    ) -> Prediction:
-        return predict_lifted(
-            self.rast, self.visibility, self.cams, prompt, None, source, train, hp, lp, views
-        )
-
-
-@dataclass
 class TfccModel:
     """The paper's field, with the test views rendered and decoded once for every prompt."""
 
@@ -206,20 +184,6 @@ class TfccModel:
     views: dict[str, DecodedView]  # test view -> decoded render (with RGB, for the pages)
     cams: dict[str, Camera]  # test view -> camera
     visibility: VisibilityCache
-
-    def predict_lifted(
-        self,
-        prompt: str,
-        text: np.ndarray,
-        source: ResSource,
-        train: list[Camera],
-        hp: HyperplaneParams,
-        lp: LiftParams,
-        views: list[str],
-    ) -> Prediction:
-        return predict_lifted(
-            self.renderer, self.visibility, self.cams, prompt, text, source, train, hp, lp, views
-        )
 
     def predict(
         self,
@@ -280,13 +244,15 @@ class DirectModel:
 
 @dataclass
 class Answerers:
-    """What one scene's chosen variants answer with: the paper's field (TFCC), the direct
-    field (None where no chosen variant needs it) and the scene alone (the field-free mode),
-    sharing one rasterizer and one visibility cache."""
+    """What one scene's chosen variants answer with: the paper's field (TFCC) and the direct
+    field (None where no chosen variant needs them), and for the lifted modes one rasterizer
+    and one visibility cache (the field-free mode needs nothing else)."""
 
     tfcc: TfccModel | None
     direct: DirectModel | None
-    free: FieldFreeModel
+    rast: Rasterizer
+    visibility: VisibilityCache
+    cams: dict[str, Camera]  # test view -> camera
 
     @classmethod
     def of(
@@ -301,11 +267,7 @@ class Answerers:
         else:
             rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(gaussians)
             vis = VisibilityCache(rast)
-        return cls(tfcc, direct, FieldFreeModel(rast, {c.name: c for c in test}, vis))
-
-    @property
-    def rast(self) -> Rasterizer:
-        return self.free.rast
+        return cls(tfcc, direct, rast, vis, {c.name: c for c in test})
 
     def predict(
         self,
@@ -321,11 +283,23 @@ class Answerers:
         seed: int,
     ) -> Prediction:
         """The variant's answer to a prompt on the test `views`."""
-        if variant == "lifted_fieldless":
-            return self.free.predict(prompt, source, train, hp, lp, views)
-        if variant == "lifted":
-            assert self.tfcc is not None
-            return self.tfcc.predict_lifted(prompt, text, source, train, hp, lp, views)
+        if variant in ("lifted", "lifted_fieldless"):
+            renderer: SemanticRenderer | Rasterizer = self.rast
+            if variant == "lifted":
+                assert self.tfcc is not None
+                renderer = self.tfcc.renderer
+            return predict_lifted(
+                renderer,
+                self.visibility,
+                self.cams,
+                prompt,
+                text if variant == "lifted" else None,
+                source,
+                train,
+                hp,
+                lp,
+                views,
+            )
         if FIELD_KIND[variant] == "tfcc":
             assert self.tfcc is not None
             return self.tfcc.predict(variant, prompt, text, source, train, hp, planes, views)
