@@ -27,7 +27,13 @@ import numpy as np
 
 from stages.core.artifacts import check_writable, open_h5, put, sha256_file, stamp
 from stages.core.errors import GoiError
-from stages.core.files import check_output_name, refuse_if_input, refuse_inputs
+from stages.core.files import (
+    check_output_name,
+    create_partial,
+    output_lock,
+    partial_exists,
+    refuse_inputs,
+)
 from stages.core.report import SILENT, Report
 from stages.core.staging import kept_on_interrupt
 from stages.models.bundle import Bundle, load_bundle
@@ -93,12 +99,6 @@ def build_res_index(scene: Scene, run: ResIndexRun, report: Report = SILENT) -> 
     check_writable(out, run.force, "--out")
     partial = _partial(out)
     check_output_name(partial, "--out")
-    if (partial.exists() or partial.is_symlink()) and not partial.is_file():
-        raise GoiError(
-            f"--out: {partial} (where index-res keeps an unfinished run) is not a regular file; "
-            "move it away"
-        )
-    refuse_if_input(partial, "--out")
     cams = scene.views("train")
     images = [scene.image_path(c) for c in cams]  # every photo found before any work
     refuse_inputs(
@@ -113,8 +113,25 @@ def build_res_index(scene: Scene, run: ResIndexRun, report: Report = SILENT) -> 
         "images": _combined(digests),
         "cameras": scene.cameras_digest(),
     }
+    with output_lock(out, "--out"):  # one run per output, or its partial file is shared
+        return _build(scene, cams, bundle, spec, inputs, digests, out, partial, report)
+
+
+def _build(
+    scene: Scene,
+    cams: list[Camera],
+    bundle: Bundle,
+    spec: dict[str, tuple[tuple[int, ...], str]],
+    inputs: dict[str, str],
+    digests: dict[str, str],
+    out: Path,
+    partial: Path,
+    report: Report,
+) -> Path:
     mode = "w"
-    if partial.is_file():
+    # the one checked path for partial files: a regular file of this user, never a link or
+    # an input
+    if partial_exists(partial, "--out"):
         try:
             with h5py.File(partial, "r") as f:
                 same = json.loads(f.attrs.get("inputs", "{}")) == inputs
@@ -123,6 +140,8 @@ def build_res_index(scene: Scene, run: ResIndexRun, report: Report = SILENT) -> 
         mode = "r+" if same else "w"
         if same:
             report.log(f"resuming {partial}")
+    if mode == "w":
+        create_partial(partial, "--out")
     t0 = time.perf_counter()
     with kept_on_interrupt(partial, created=mode == "w"):
         with h5py.File(partial, mode, track_order=True) as f:
