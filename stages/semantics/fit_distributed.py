@@ -12,9 +12,11 @@ the leader (rank 0) gathers the features at the end and writes today's field art
 
 from __future__ import annotations
 
+import contextlib
 import resource
 import signal
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +25,7 @@ import torch.distributed as dist
 
 from stages.core.arrays import unit_norms
 from stages.core.errors import GoiError
-from stages.core.files import check_output_name, refuse_if_input, refuse_inputs
+from stages.core.files import check_output_name, output_lock, refuse_if_input, refuse_inputs
 from stages.core.report import SILENT, Report
 from stages.scene.gaussians import ply_count
 from stages.scene.scene import Scene
@@ -72,11 +74,32 @@ def fit_field_distributed(
     try:
         ranks = start(run.dist_timeout_s, run.threads)
         try:
-            return _fit(scene, features_path, codebook_path, p, run, ranks, report)
+            with _leader_locks(run, ranks):
+                return _fit(scene, features_path, codebook_path, p, run, ranks, report)
         finally:
             stop()
     finally:
         signal.signal(signal.SIGTERM, before)
+
+
+@contextlib.contextmanager
+def _leader_locks(run: FieldRun, ranks: Ranks) -> Iterator[None]:
+    """One run per output, as in the single-process fit: the leader holds the locks on --out
+    and on the blend cache (whose shards and parts files sit beside it) for the whole run, and
+    every rank learns whether it got them, so that all ranks of a second run of the same --out
+    refuse with the leader's line before any of them reads, builds or removes anything."""
+    with contextlib.ExitStack() as held:
+        refused = ""
+        if ranks.leader:
+            try:
+                held.enter_context(output_lock(run.out, "--out"))
+                held.enter_context(output_lock(run.cache_path, "--cache"))
+            except GoiError as e:
+                refused = str(e)
+        said = ranks.gather_objects(refused, "the output lock")
+        if any(said):
+            raise GoiError(next(m for m in said if m))
+        yield
 
 
 def _stopped(signum: int, frame: object) -> None:

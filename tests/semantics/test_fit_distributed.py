@@ -238,3 +238,21 @@ def test_ranks_of_different_goi_versions_are_refused_at_the_rendezvous(fitted, t
     assert 1 <= len(lines) <= 2
     assert all("the ranks run different goi versions" in ln for ln in lines)
     assert not (root / "mixed.h5").exists()
+
+
+@pytest.mark.slow
+def test_a_second_run_of_the_same_out_is_refused_on_every_rank(fitted):
+    """The leader holds the output lock for the whole run; here this test holds it (as a first
+    run would), and both ranks of the second run refuse with the leader's one line."""
+    from stages.core.files import output_lock
+
+    root, args, _ = fitted
+    out = root / "locked.h5"
+    with output_lock(out, "--out"):
+        r = torchrun(2, [*args, "--out", str(out)], root)
+    assert r.returncode != 0
+    lines = goi_lines(r.stderr)
+    # each rank refuses; torchrun may stop the slower one before its line is out
+    assert 1 <= len(lines) <= 2, r.stderr[-2000:]
+    assert all("is being written by another goi run (pid " in ln for ln in lines)
+    assert not out.exists() and not list(root.glob("locked.h5.ckpt*"))
