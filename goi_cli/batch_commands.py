@@ -1,0 +1,78 @@
+"""`goi batch CONFIG`: parse, check the configuration, run the workflow, print its table."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from goi_cli.options import build, dataclass_options
+from goi_cli.report import TERMINAL
+from stages.batch.run import BatchRun
+from stages.core.errors import GoiError
+
+
+@click.command(
+    "batch", context_settings={"ignore_unknown_options": False, "allow_interspersed_args": True}
+)
+@click.argument("config", type=click.Path(path_type=Path))
+@click.argument("snakemake_args", nargs=-1, type=click.UNPROCESSED)
+@dataclass_options(BatchRun)
+def batch_cmd(config: Path, snakemake_args: tuple[str, ...], **kw) -> None:
+    """Run many scenes and prompts as one Snakemake workflow, locally or on a cluster.
+
+    CONFIG (YAML or JSON, schema goi.batch; docs/scaling.md) lists the scenes (a directory or
+    ply/cameras/images, a features source, a RES source or bundle, an optional RES index) and
+    their prompts. Each goi stage is one job: extract, init-codebook and fit-field per scene,
+    index-res when asked, then one query per prompt; a scene without features goes the
+    field-free lifted route. A rerun runs only what is out of date. It ends with one table:
+    per scene the stages run, their time and the answers written.
+
+    Snakemake's own options go after `--`, e.g. `goi batch c.yaml --executor slurm --jobs 100
+    -- --default-resources slurm_account=X` or `--executor cluster-generic --
+    --cluster-generic-submit-cmd 'sbatch ...'`. Needs `pip install 'goi[batch]'`.
+    """
+    from stages.batch.config import load_batch
+    from stages.batch.run import run_batch, snakemake_available
+
+    snakemake_available()  # before the configuration: nothing can run without it
+    run = build(BatchRun, kw)
+    batch = load_batch(config, run.out)
+    _check_options(batch)
+    result = run_batch(batch, run, list(snakemake_args), TERMINAL)
+    if result.dry_run:
+        if result.returncode != 0:
+            raise click.exceptions.Exit(result.returncode)
+        return
+    click.echo("\n".join(result.table()))
+    failed = [log for s in result.scenes for log in s.failed]
+    if result.returncode != 0:
+        where = f"; see {', '.join(str(f) for f in failed[:3])}" if failed else ""
+        click.echo(
+            f"goi: error: batch: Snakemake stopped with exit status {result.returncode}{where}",
+            err=True,
+        )
+        raise click.exceptions.Exit(1)
+
+
+def _check_options(batch: object) -> None:
+    """Every option a scene adds to a stage is one that goi command has (checked here, where
+    the commands are known, before any job runs)."""
+    from stages.batch.config import Batch
+
+    assert isinstance(batch, Batch)
+    goi = click.get_current_context().find_root().command
+    assert isinstance(goi, click.Group)
+    for s in batch.scenes:
+        for (stage, name), line in s.option_lines.items():
+            command = goi.commands[stage]
+            known = {o for p in command.params for o in p.opts if o.startswith("--")}
+            if f"--{name}" not in known:
+                raise GoiError(
+                    f"{batch.config}: line {line}: 'options.{stage}.{name}': goi {stage} has no "
+                    f"option --{name} (see goi {stage} --help)"
+                )
+
+
+def register(group: click.Group) -> None:
+    group.add_command(batch_cmd)

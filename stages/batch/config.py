@@ -1,0 +1,381 @@
+"""The configuration of `goi batch` (schema goi.batch): read, checked, resolved into a plan.
+
+The file is YAML or JSON (JSON is YAML, so one reader serves both and every value keeps its
+line). It is checked against schemas/goi.batch.json before anything runs: an unknown key, a
+value of the wrong type, a key given twice, a missing scene, two scenes or two prompts
+writing the same output are each one GoiError naming the file, the key and its line. The plan
+is what the shipped Snakefile reads: plain paths and argument lists, nothing to import.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from schemas import current_version, definition
+from stages.core.errors import GoiError
+from stages.core.files import MAX_TEXT_BYTES, read_text
+from stages.query.prompts import safe_name
+from stages.scene.scene import load_scene
+
+SCHEMA = "goi.batch"
+#: The goi commands a scene's `options` may add to, in the order a scene runs them.
+STAGES = ("extract", "init-codebook", "fit-field", "index-res", "query")
+#: What a scene's name may be: one plain path component (it is OUT/<name>/ and a wildcard).
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}")
+#: Option names of `options`: what goi's click options are made of.
+_OPTION = re.compile(r"[a-z][a-z0-9-]*")
+
+
+@dataclass
+class Node:
+    """A value of the file and the line it starts on (1-based)."""
+
+    value: Any  # dict[str, Node] | list[Node] | str | int | float | bool | None
+    line: int
+
+
+def read_config(path: Path) -> Node:
+    """The file as a tree of Nodes; YAML or JSON, one key twice is refused."""
+    import yaml
+
+    text = read_text(path, "batch configuration", MAX_TEXT_BYTES)
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark is not None else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise GoiError(f"{path}: not valid YAML or JSON{where}: {problem}") from None
+    if root is None:
+        raise GoiError(f"{path}: empty; a batch configuration lists its scenes")
+    return _tree(root, path)
+
+
+def _tree(node: Any, path: Path) -> Node:
+    import yaml
+
+    line = node.start_mark.line + 1
+    if isinstance(node, yaml.MappingNode):
+        out: dict[str, Node] = {}
+        for k, v in node.value:
+            key = _tree(k, path)
+            if not isinstance(key.value, str):
+                raise GoiError(f"{path}: line {key.line}: a key must be text, found {key.value!r}")
+            if key.value in out:
+                raise GoiError(
+                    f"{path}: line {key.line}: key '{key.value}' appears twice in one mapping "
+                    f"(first on line {out[key.value].line})"
+                )
+            out[key.value] = _tree(v, path)
+        return Node(out, line)
+    if isinstance(node, yaml.SequenceNode):
+        return Node([_tree(v, path) for v in node.value], line)
+    try:
+        value = yaml.SafeLoader("").construct_object(node)  # a scalar, typed by YAML's rules
+    except yaml.YAMLError as e:
+        raise GoiError(f"{path}: line {line}: {getattr(e, 'problem', None) or e}") from None
+    return Node(value, line)
+
+
+class Checker:
+    """Checks a tree against the schema's definitions, naming the key path and line."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.d = definition(SCHEMA)
+
+    def fail(self, node: Node, key: str, message: str) -> GoiError:
+        return GoiError(f"{self.path}: line {node.line}: '{key}' {message}")
+
+    def fields(self, ref: str | dict) -> dict[str, dict]:
+        spec = self.d["definitions"][ref] if isinstance(ref, str) else ref
+        if isinstance(spec["fields"], str):  # a reference to a definition's fields
+            return self.fields(spec["fields"])
+        out = dict(spec["fields"])
+        if "also" in spec:
+            out.update(self.fields(spec["also"]))
+        return out
+
+    def obj(self, node: Node, key: str, spec: dict[str, dict]) -> dict[str, Node]:
+        if not isinstance(node.value, dict):
+            raise self.fail(node, key, f"should be a mapping, found {_kind(node.value)}")
+        for name, child in node.value.items():
+            if name not in spec:
+                known = ", ".join(spec)
+                where = f"'{key}.{name}'" if key else f"'{name}'"
+                raise GoiError(
+                    f"{self.path}: line {child.line}: unknown key {where} (known here: {known})"
+                )
+            self.value(child, f"{key}.{name}" if key else name, spec[name])
+        for name, f in spec.items():
+            if name not in node.value and not f.get("optional"):
+                where = f"'{key}'" if key else "the file"
+                raise GoiError(f"{self.path}: line {node.line}: {where} lacks the key '{name}'")
+        return node.value
+
+    def value(self, node: Node, key: str, f: dict) -> None:
+        kinds = f["type"].split("|")
+        v = node.value
+        if isinstance(v, dict) and "object" in kinds:
+            self.obj(node, key, self.fields(f))
+        elif isinstance(v, dict) and "map" in kinds:
+            self.options(node, key, f["keys"])
+        elif isinstance(v, list) and "list" in kinds:
+            items = self.d["definitions"][f["items"]]
+            for i, item in enumerate(v):
+                self.value(item, f"{key}[{i}]", items)
+        elif isinstance(v, bool):
+            if "bool" not in kinds:
+                raise self.fail(node, key, f"should be {' or '.join(kinds)}, found {_kind(v)}")
+        elif isinstance(v, str) and "str" in kinds:
+            if not v.strip():
+                raise self.fail(node, key, "is empty")
+        else:
+            raise self.fail(node, key, f"should be {' or '.join(kinds)}, found {_kind(v)}")
+
+    def options(self, node: Node, key: str, stages: list[str]) -> None:
+        for stage, opts in node.value.items():
+            if stage not in stages:
+                raise GoiError(
+                    f"{self.path}: line {opts.line}: unknown key '{key}.{stage}' (known here: "
+                    f"{', '.join(stages)})"
+                )
+            if not isinstance(opts.value, dict):
+                raise self.fail(opts, f"{key}.{stage}", "should be a mapping {option: value}")
+            for name, v in opts.value.items():
+                where = f"{key}.{stage}.{name}"
+                if not _OPTION.fullmatch(name):
+                    raise self.fail(v, where, "is not an option name (e.g. iterations)")
+                if isinstance(v.value, dict | list) or v.value is None:
+                    raise self.fail(v, where, "should be a number, text, true or false")
+
+
+def _kind(v: Any) -> str:
+    names = {dict: "a mapping", list: "a list", str: "text", bool: "true/false"}
+    return names.get(type(v), "nothing" if v is None else "a number")
+
+
+@dataclass
+class Prompt:
+    text: str
+    id: str | None  # the subdirectory of res_masks, when it is not the safe name
+    key: str  # the answer's wildcard: the text's safe name
+
+
+@dataclass
+class SceneJob:
+    """One scene of the batch, resolved: what the Snakefile runs for it."""
+
+    name: str
+    line: int
+    scene_args: list[str]  # --scene DIR or --ply/--cameras/--images
+    inputs: list[str]  # the files whose change reruns the scene (PLY, cameras)
+    extract_args: list[str] | None  # None: the field-free route
+    query_args: list[str]  # text, RES source, --lift
+    index_bundle: str | None  # build OUT/<name>/res_index.h5 with this bundle
+    options: dict[str, list[str]]  # stage -> its extra arguments
+    option_lines: dict[tuple[str, str], int]  # (stage, option name) -> its line in the file
+    prompts: list[Prompt] = field(default_factory=list)
+
+    @property
+    def fitted(self) -> bool:
+        return self.extract_args is not None
+
+
+@dataclass
+class Batch:
+    config: Path
+    out: Path
+    scenes: list[SceneJob]
+
+    def plan(self, python: str) -> dict[str, Any]:
+        """What the Snakefile reads (its `config`)."""
+        return {
+            "python": python,
+            "scenes": {
+                s.name: {
+                    "scene_args": s.scene_args,
+                    "inputs": s.inputs,
+                    "fitted": s.fitted,
+                    "extract_args": s.extract_args or [],
+                    "query_args": s.query_args,
+                    "index_bundle": s.index_bundle,
+                    "options": s.options,
+                    "prompts": {p.key: {"text": p.text, "id": p.id} for p in s.prompts},
+                }
+                for s in self.scenes
+            },
+        }
+
+
+def load_batch(path: Path, out: Path | None = None) -> Batch:
+    """The checked and resolved configuration: every scene found, every output distinct."""
+    root = read_config(path)
+    c = Checker(path)
+    top = c.obj(root, "", c.d["fields"])
+    if "schema" in top and top["schema"].value != SCHEMA:
+        raise c.fail(top["schema"], "schema", f"should be {SCHEMA!r}")
+    if "schema_version" in top:
+        v, mine = str(top["schema_version"].value), current_version(SCHEMA)
+        if v.split(".")[0] != mine.split(".")[0]:
+            raise c.fail(
+                top["schema_version"],
+                "schema_version",
+                f"{v} is not readable by this goi ({SCHEMA} {mine}): upgrade goi or rewrite "
+                "the file for this version",
+            )
+    base = path.parent
+    if out is None:
+        out = base / str(top["out"].value) if "out" in top else base / "goi-batch"
+    defaults = top["defaults"].value if "defaults" in top else {}
+    scenes_node = top["scenes"]
+    if not scenes_node.value:
+        raise c.fail(scenes_node, "scenes", "is empty; list at least one scene")
+    scenes: list[SceneJob] = []
+    seen: dict[str, SceneJob] = {}
+    for i, node in enumerate(scenes_node.value):
+        job = _scene(c, node, f"scenes[{i}]", defaults, base)
+        other = seen.get(job.name.lower())  # case-insensitive file systems too
+        if other is not None:
+            raise GoiError(
+                f"{path}: line {job.line}: scenes[{i}] and the scene on line {other.line} "
+                f"both write {out / job.name}/; give one of them another 'name'"
+            )
+        seen[job.name.lower()] = job
+        scenes.append(job)
+    return Batch(path, out, scenes)
+
+
+def _scene(c: Checker, node: Node, key: str, defaults: dict[str, Node], base: Path) -> SceneJob:
+    own: dict[str, Node] = node.value
+    merged = {**defaults, **own}
+
+    def get(name: str) -> Any:
+        return merged[name].value if name in merged else None
+
+    def where(name: str) -> Node:
+        return merged.get(name, node)
+
+    def local(name: str) -> Path | None:
+        v = get(name)
+        if v is None or isinstance(v, bool):
+            return None
+        p = Path(os.path.expanduser(v))
+        return p if p.is_absolute() else base / p
+
+    def exists(name: str) -> Path | None:
+        p = local(name)
+        if p is not None and not p.exists():
+            raise c.fail(where(name), f"{key}.{name}", f"{p}: no such file or directory")
+        return p
+
+    scene_dir, ply, cameras, images = (exists(k) for k in ("scene", "ply", "cameras", "images"))
+    if scene_dir is None and (ply is None or cameras is None):
+        raise GoiError(
+            f"{c.path}: line {node.line}: {key} names no scene: give 'scene' (a directory) or "
+            "'ply' and 'cameras'"
+        )
+    try:
+        scene = load_scene(scene_dir, ply, cameras, images)
+    except GoiError as e:
+        raise c.fail(where("scene" if scene_dir else "ply"), key, f"is not a scene: {e}") from None
+    scene_args: list[str] = []
+    for opt, p in (("--scene", scene_dir), ("--ply", ply), ("--cameras", cameras)):
+        if p is not None:
+            scene_args += [opt, str(p.resolve())]
+    if images is not None:
+        scene_args += ["--images", str(images.resolve())]
+    name = get("name") or (scene_dir or scene.ply_path.parent).resolve().name
+    if not _NAME.fullmatch(name):
+        raise c.fail(
+            where("name"), f"{key}.name", f"{name!r} is not a plain file name (letters, digits, "
+            "'_', '-', '.', '+'; not starting with '.' or '-')"
+        )  # fmt: skip
+
+    features, feature_bundle = exists("features"), exists("feature_bundle")
+    if features is not None and feature_bundle is not None:
+        raise c.fail(where("feature_bundle"), key, "gives both 'features' and 'feature_bundle'")
+    extract_args = None
+    if features is not None:
+        extract_args = ["--from", str(features.resolve())]
+    elif feature_bundle is not None:
+        extract_args = ["--bundle", str(feature_bundle.resolve())]
+
+    query_args: list[str] = []
+    for k, opt in (("text_embeddings", "--text-embeddings"), ("bundle", "--bundle")):
+        p = exists(k)
+        if p is not None:
+            query_args += [opt, str(p.resolve())]
+    res_masks, bundle = exists("res_masks"), local("bundle")
+    if res_masks is not None:
+        query_args += ["--res-masks", str(res_masks.resolve())]
+    index_bundle = None
+    res_index = get("res_index")
+    if res_index is True:
+        if bundle is None:
+            raise c.fail(where("res_index"), f"{key}.res_index", "is true but no 'bundle' is given")
+        index_bundle = str(bundle.resolve())
+    elif isinstance(res_index, str):
+        index = exists("res_index")
+        assert index is not None
+        query_args += ["--res-index", str(index.resolve())]
+    lift = bool(get("lift"))
+    if lift:
+        query_args.append("--lift")
+    if extract_args is None and not (lift and (res_masks is not None or bundle is not None)):
+        raise GoiError(
+            f"{c.path}: line {node.line}: {key} has no features source ('features' or "
+            "'feature_bundle'), so it goes the field-free route, which needs 'lift: true' and a "
+            "RES source ('res_masks' or 'bundle')"
+        )
+
+    options: dict[str, list[str]] = {}
+    option_lines: dict[tuple[str, str], int] = {}
+    for stage in STAGES:
+        merged_opts: dict[str, Node] = {}
+        for source in (defaults, own):
+            if "options" in source and stage in source["options"].value:
+                merged_opts.update(source["options"].value[stage].value)
+        options[stage] = _args(merged_opts)
+        option_lines.update({(stage, k): v.line for k, v in merged_opts.items()})
+
+    prompts_node = merged.get("prompts")
+    if prompts_node is None or not prompts_node.value:
+        raise GoiError(f"{c.path}: line {node.line}: {key} has no prompts (here or in defaults)")
+    prompts: list[Prompt] = []
+    by_key: dict[str, int] = {}
+    for p in prompts_node.value:
+        text, pid = (p.value, None) if isinstance(p.value, str) else _prompt(p)
+        k = safe_name(text)
+        if k in by_key:
+            raise GoiError(
+                f"{c.path}: line {p.line}: {key}: the prompt {text!r} is given twice (also on "
+                f"line {by_key[k]}); both would write the same answer"
+            )
+        by_key[k] = p.line
+        prompts.append(Prompt(text, pid, k))
+    inputs = [str(scene.ply_path.resolve()), *(str(f.resolve()) for f in scene.camera_files)]
+    return SceneJob(
+        name, node.line, scene_args, inputs, extract_args, query_args, index_bundle, options,
+        option_lines, prompts,
+    )  # fmt: skip
+
+
+def _prompt(p: Node) -> tuple[str, str | None]:
+    d = p.value
+    return d["text"].value, (str(d["id"].value) if "id" in d else None)
+
+
+def _args(opts: dict[str, Node]) -> list[str]:
+    """{option: value} as command-line arguments: true is a flag, false leaves it out."""
+    out: list[str] = []
+    for name, v in opts.items():
+        if v.value is True:
+            out.append(f"--{name}")
+        elif v.value is not False:
+            out += [f"--{name}", str(v.value)]
+    return out

@@ -1,0 +1,170 @@
+"""`goi batch`: the shipped Snakefile run on a checked configuration, and its summary.
+
+Snakemake runs as `python -m snakemake` in a child process of the same interpreter (so its
+jobs, which run `python -m goi`, see the same goi), in the batch's output directory: its
+metadata (`.snakemake/`) and its lock live there, so a rerun of the same batch runs only what
+is out of date, and a second `goi batch` of one output directory is refused by Snakemake.
+The summary is made from the files the jobs wrote (each rule's benchmark and log), not from
+Snakemake's messages.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Annotated
+
+from stages.batch.config import Batch, SceneJob
+from stages.core.errors import GoiError
+from stages.core.files import make_dir, refuse_if_input
+from stages.core.params import Range
+from stages.core.report import SILENT, Report
+
+#: The extra that brings Snakemake (pyproject.toml).
+INSTALL = "pip install 'goi[batch]'"
+
+
+@dataclass
+class BatchRun:
+    out: Path | None = None
+    """Output directory of the batch (default: the configuration's 'out', else goi-batch
+    beside it): <scene>/ per scene, Snakemake's state in .snakemake/."""
+    jobs: Annotated[int, Range(ge=1, le=10_000)] = 1
+    """Jobs at once: local processes, or jobs submitted to the cluster with --executor. Each
+    goi stage uses every core it is given, so locally more jobs than cores only interleave."""
+    executor: str = "local"
+    """Snakemake executor: local, or a plugin such as slurm or cluster-generic (installed with
+    pip, e.g. snakemake-executor-plugin-slurm); its settings go after --, as Snakemake's."""
+    dry_run: bool = False
+    """Show the jobs that would run, and why, without running them."""
+    keep_going: bool = False
+    """Go on with the jobs that do not depend on a failed one."""
+
+
+@dataclass
+class SceneSummary:
+    name: str
+    stages: list[str] = field(default_factory=list)  # the jobs that ran, e.g. query-<prompt>
+    seconds: float = 0.0  # their wall time, from their benchmark files
+    new_answers: int = 0
+    answers: int = 0  # present after the run
+    prompts: int = 0
+    failed: list[Path] = field(default_factory=list)  # logs of jobs that did not finish
+
+
+@dataclass
+class BatchResult:
+    out: Path
+    returncode: int
+    dry_run: bool
+    scenes: list[SceneSummary]
+
+    def table(self) -> list[str]:
+        """One line per scene: the stages run, their time, the answers written."""
+        rows = [("scene", "stages run", "time", "answers")]
+        for s in self.scenes:
+            rows.append(
+                (
+                    s.name,
+                    _stages_text(s.stages) + (" (failed)" if s.failed else ""),
+                    f"{s.seconds:.1f} s",
+                    f"{s.new_answers} new, {s.answers}/{s.prompts}",
+                )
+            )
+        widths = [max(len(r[i]) for r in rows) for i in range(4)]
+        return [
+            "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows
+        ]
+
+
+def snakefile() -> Path:
+    return Path(str(resources.files("stages.batch").joinpath("workflow/Snakefile")))
+
+
+def snakemake_available() -> None:
+    if importlib.util.find_spec("snakemake") is None:
+        raise GoiError(f"goi batch needs Snakemake: {INSTALL}")
+
+
+def run_batch(
+    batch: Batch, run: BatchRun, extra: list[str], report: Report = SILENT
+) -> BatchResult:
+    snakemake_available()
+    out = make_dir(run.out or batch.out, "--out").resolve()
+    state = out / ".goi-batch"
+    state.mkdir(exist_ok=True)
+    plan = state / "plan.json"
+    refuse_if_input(plan, "--out")
+    tmp = plan.with_name(plan.name + ".tmp")
+    tmp.write_text(json.dumps(batch.plan(sys.executable), indent=1))
+    tmp.replace(plan)
+    cmd = [
+        sys.executable, "-m", "snakemake", "--snakefile", str(snakefile()),
+        "--directory", str(out), "--configfile", str(plan), "--jobs", str(run.jobs),
+        "--rerun-incomplete",
+    ]  # fmt: skip
+    if run.executor != "local":
+        cmd += ["--executor", run.executor]
+    if run.dry_run:
+        cmd.append("--dry-run")
+    if run.keep_going:
+        cmd.append("--keep-going")
+    cmd += extra
+    n_jobs = sum(
+        len(s.prompts) + (3 if s.fitted else 0) + bool(s.index_bundle) for s in batch.scenes
+    )
+    report.log(
+        f"{len(batch.scenes)} scenes, {sum(len(s.prompts) for s in batch.scenes)} prompts "
+        f"({n_jobs} jobs when nothing is done yet) in {out}, executor {run.executor}"
+    )
+    start = time.time()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # Snakemake prints its own progress; it goes to stderr with goi's news, the table to stdout.
+    rc = subprocess.run(cmd, stdout=sys.stderr, env=env, check=False).returncode
+    return BatchResult(out, rc, run.dry_run, [_summary(out, s, start) for s in batch.scenes])
+
+
+def _summary(out: Path, scene: SceneJob, start: float) -> SceneSummary:
+    """What the jobs of one scene did in this run, from the files they wrote after `start`."""
+    name = scene.name
+    s = SceneSummary(name, prompts=len(scene.prompts))
+    logs = out / name / "logs"
+    # A job that ran wrote its log; one that finished also wrote its benchmark (after it).
+    for log in sorted(logs.glob("*.log"), key=lambda p: p.stat().st_mtime):
+        if log.stat().st_mtime < start:
+            continue
+        bench = log.with_suffix(".tsv")
+        if bench.is_file() and bench.stat().st_mtime >= start:
+            s.stages.append(log.stem)
+            s.seconds += _seconds(bench)
+        else:
+            s.failed.append(log)
+    for p in scene.prompts:
+        answer = out / name / "prompts" / p.key / p.key / "selection.h5"
+        if answer.is_file():
+            s.answers += 1
+            s.new_answers += answer.stat().st_mtime >= start
+    return s
+
+
+def _seconds(bench: Path) -> float:
+    """The wall time a Snakemake benchmark file records (column 's')."""
+    with bench.open() as f:
+        rows = list(csv.DictReader(f, delimiter="\t"))
+    return sum(float(r.get("s") or 0) for r in rows)
+
+
+def _stages_text(stages: list[str]) -> str:
+    if not stages:
+        return "-"
+    queries = sum(st.startswith("query-") for st in stages)
+    named = [st for st in stages if not st.startswith("query-")]
+    return ", ".join([*named, *([f"query x{queries}"] if queries else [])])
