@@ -117,7 +117,7 @@ def run_batch(
         cmd.append("--dry-run")
     if run.keep_going:
         cmd.append("--keep-going")
-    cmd += extra
+    cmd += [*extra, "all", *_missing_intermediates(out, batch)]
     n_jobs = sum(
         len(s.prompts) + (3 if s.fitted else 0) + bool(s.index_bundle) for s in batch.scenes
     )
@@ -127,9 +127,24 @@ def run_batch(
     )
     start = time.time()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    # Snakemake prints its own progress; it goes to stderr with goi's news, the table to stdout.
-    rc = subprocess.run(cmd, stdout=sys.stderr, env=env, check=False).returncode
+    # Snakemake prints its own progress; it goes to stderr (file descriptor 2) with goi's
+    # news, and the table to stdout.
+    rc = subprocess.run(cmd, stdout=2, env=env, check=False).returncode
     return BatchResult(out, rc, run.dry_run, [_summary(out, s, start) for s in batch.scenes])
+
+
+def _missing_intermediates(out: Path, batch: Batch) -> list[str]:
+    """The scenes' intermediate artifacts that are not there, as extra targets. Snakemake
+    alone keeps answers whose intermediate input was deleted (it would only be needed to make
+    them again); asked for it, it makes the artifact again, and then everything after it is out
+    of date and reruns: a deleted artifact reruns what depends on it, and only that."""
+    names = ["features.h5", "codebook.h5", "field.h5"]
+    targets = []
+    for s in batch.scenes:
+        for name in [*names * s.fitted, *["res_index.h5"] * bool(s.index_bundle)]:
+            if not (out / s.name / name).exists():
+                targets.append(f"{s.name}/{name}")
+    return targets
 
 
 def _summary(out: Path, scene: SceneJob, start: float) -> SceneSummary:
