@@ -33,7 +33,7 @@ def batch_cmd(config: Path, snakemake_args: tuple[str, ...], **kw) -> None:
     --cluster-generic-submit-cmd 'sbatch ...'`. Needs `pip install 'goi[batch]'`.
     """
     from stages.batch.config import load_batch
-    from stages.batch.run import run_batch, snakemake_available
+    from stages.batch.run import last_line, run_batch, snakemake_available
 
     snakemake_available()  # before the configuration: nothing can run without it
     run = build(BatchRun, kw)
@@ -47,7 +47,7 @@ def batch_cmd(config: Path, snakemake_args: tuple[str, ...], **kw) -> None:
     click.echo("\n".join(result.table()))
     failed = [log for s in result.scenes for log in s.failed]
     if result.returncode != 0:
-        where = f"; see {', '.join(str(f) for f in failed[:3])}" if failed else ""
+        where = f"; {failed[0]}: {last_line(failed[0])}" if failed else ""
         click.echo(
             f"goi: error: batch: Snakemake stopped with exit status {result.returncode}{where}",
             err=True,

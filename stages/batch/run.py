@@ -74,7 +74,7 @@ class BatchResult:
             rows.append(
                 (
                     s.name,
-                    _stages_text(s.stages) + (" (failed)" if s.failed else ""),
+                    _stages_text(s.stages, [f.stem for f in s.failed]),
                     f"{s.seconds:.1f} s",
                     f"{s.new_answers} new, {s.answers}/{s.prompts}",
                 )
@@ -106,10 +106,12 @@ def run_batch(
     tmp = plan.with_name(plan.name + ".tmp")
     tmp.write_text(json.dumps(batch.plan(sys.executable), indent=1))
     tmp.replace(plan)
-    cmd = [
-        sys.executable, "-m", "snakemake", "--snakefile", str(snakefile()),
-        "--directory", str(out), "--configfile", str(plan), "--jobs", str(run.jobs),
-        "--rerun-incomplete",
+    # The targets come first: Snakemake options such as --configfile or --set-resources take
+    # any number of values, and would take targets given after them as theirs.
+    cmd = [sys.executable, "-m", "snakemake", "all", *_missing_intermediates(out, batch)]
+    cmd += [
+        "--snakefile", str(snakefile()), "--directory", str(out), "--jobs", str(run.jobs),
+        "--rerun-incomplete", "--configfile", str(plan),
     ]  # fmt: skip
     if run.executor != "local":
         cmd += ["--executor", run.executor]
@@ -117,7 +119,7 @@ def run_batch(
         cmd.append("--dry-run")
     if run.keep_going:
         cmd.append("--keep-going")
-    cmd += [*extra, "all", *_missing_intermediates(out, batch)]
+    cmd += extra
     n_jobs = sum(
         len(s.prompts) + (3 if s.fitted else 0) + bool(s.index_bundle) for s in batch.scenes
     )
@@ -128,8 +130,10 @@ def run_batch(
     start = time.time()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     # Snakemake prints its own progress; it goes to stderr (file descriptor 2) with goi's
-    # news, and the table to stdout.
-    rc = subprocess.run(cmd, stdout=2, env=env, check=False).returncode
+    # news, and the table to stdout. A dry run has no table: what Snakemake prints on stdout
+    # (e.g. `-- --dag`, the graph in DOT) stays there.
+    stdout = None if run.dry_run else 2
+    rc = subprocess.run(cmd, stdout=stdout, env=env, check=False).returncode
     return BatchResult(out, rc, run.dry_run, [_summary(out, s, start) for s in batch.scenes])
 
 
@@ -177,9 +181,22 @@ def _seconds(bench: Path) -> float:
     return sum(float(r.get("s") or 0) for r in rows)
 
 
-def _stages_text(stages: list[str]) -> str:
-    if not stages:
-        return "-"
-    queries = sum(st.startswith("query-") for st in stages)
-    named = [st for st in stages if not st.startswith("query-")]
-    return ", ".join([*named, *([f"query x{queries}"] if queries else [])])
+def _stages_text(stages: list[str], failed: list[str]) -> str:
+    """e.g. `extract, init-codebook, fit-field, query x2; failed: query x1`."""
+
+    def names(jobs: list[str]) -> list[str]:
+        queries = sum(st.startswith("query-") for st in jobs)
+        named = [st for st in jobs if not st.startswith("query-")]
+        return [*named, *([f"query x{queries}"] if queries else [])]
+
+    text = ", ".join(names(stages)) or "-"
+    return f"{text}; failed: {', '.join(names(failed))}" if failed else text
+
+
+def last_line(log: Path) -> str:
+    """The last line a failed job wrote (goi's one-line error), shortened."""
+    try:
+        lines = [ln.strip() for ln in log.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return ""
+    return lines[-1][:300] if lines else ""

@@ -56,11 +56,30 @@ def test_the_dry_run_shows_the_graph(scenes, tmp_path, capfd):
     write_config(cfg, scenes, fieldfree=("c",))
     assert main(["batch", str(cfg), "--dry-run"]) == 0
     cap = capfd.readouterr()
-    stats = dict(re.findall(r"^(\w+)\s+(\d+)$", cap.err, re.M))
+    stats = dict(re.findall(r"^(\w+)\s+(\d+)$", cap.out + cap.err, re.M))
     want = {"extract": "2", "init_codebook": "2", "fit_field": "2", "query": "6", "total": "13"}
-    assert {k: stats.get(k) for k in want} == want, cap.err[-3000:]
+    assert {k: stats.get(k) for k in want} == want, (cap.out + cap.err)[-3000:]
     assert "index_res" not in stats
     assert not (tmp_path / "goi-batch" / "a" / "features.h5").exists()  # nothing ran
+    # the field-free route with a RES index built first (the bundle is not read by a dry run)
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    cfg.write_text(
+        f"scenes:\n  - scene: {scenes['c'] / 'scene'}\n    bundle: {bundle}\n"
+        "    res_index: true\n    lift: true\n    prompts: [a chair, a lamp]\n"
+    )
+    assert main(["batch", str(cfg), "--dry-run"]) == 0
+    cap = capfd.readouterr()
+    err = cap.out + cap.err
+    stats = dict(re.findall(r"^(\w+)\s+(\d+)$", err, re.M))
+    assert {k: stats.get(k) for k in ("index_res", "query", "total")} == {
+        "index_res": "1",
+        "query": "2",
+        "total": "4",
+    }, err[-3000:]
+    assert "extract" not in stats and "fit_field" not in stats
+    assert "output: scene/res_index.h5" in err
+    assert len(re.findall(r"rule query:\n\s+input: [^\n]*scene/res_index\.h5", err)) == 2
 
 
 @pytest.mark.slow
@@ -190,3 +209,22 @@ def test_the_cli_refuses_a_bad_configuration_in_one_line(scenes, tmp_path, capsy
     assert capsys.readouterr().err.strip() == (
         "goi: error: goi batch needs Snakemake: pip install 'goi[batch]'"
     )
+
+
+@pytest.mark.slow
+def test_a_failed_job_is_named_with_its_error_and_the_batch_exits_1(scenes, tmp_path, capfd):
+    snakemake()
+    c = scenes["c"]
+    cfg = tmp_path / "batch.yaml"
+    cfg.write_text(
+        f"scenes:\n  - scene: {c / 'scene'}\n    res_masks: {c / 'res'}\n    lift: true\n"
+        "    options: {query: {export: none}}\n"
+        "    prompts: [{text: object 1, id: o1}, {text: object 9, id: o9}]\n"
+    )
+    assert main(["batch", str(cfg), "--keep-going"]) == 1
+    cap = capfd.readouterr()
+    t = table(cap.out)
+    assert t["scene"][0] == "query x1; failed: query x1" and t["scene"][2] == "1 new, 1/2"
+    last = cap.err.strip().splitlines()[-1]
+    assert last.startswith("goi: error: batch: Snakemake stopped with exit status 1; ")
+    assert "query-object-9-" in last and "o9" in last, last
