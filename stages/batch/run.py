@@ -38,8 +38,9 @@ class BatchRun:
     """Output directory of the batch (default: the configuration's 'out', else goi-batch
     beside it): <scene>/ per scene, Snakemake's state in .snakemake/."""
     jobs: Annotated[int, Range(ge=1, le=10_000)] = 1
-    """Jobs at once: local processes, or jobs submitted to the cluster with --executor. Each
-    goi stage uses every core it is given, so locally more jobs than cores only interleave."""
+    """Jobs at once: local processes, or jobs submitted to the cluster with --executor. goi's
+    stages are multi-threaded already: locally, a few jobs overlap one's reading and writing
+    with another's work."""
     executor: str = "local"
     """Snakemake executor: local, or a plugin such as slurm or cluster-generic (installed with
     pip, e.g. snakemake-executor-plugin-slurm); its settings go after --, as Snakemake's."""
