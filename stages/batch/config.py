@@ -164,6 +164,7 @@ class Prompt:
     text: str
     id: str | None  # the subdirectory of res_masks, when it is not the safe name
     key: str  # the answer's wildcard: the text's safe name
+    masks: list[str] = field(default_factory=list)  # its RES mask files, when res_masks holds any
 
 
 @dataclass
@@ -180,6 +181,10 @@ class SceneJob:
     options: dict[str, list[str]]  # stage -> its extra arguments
     option_lines: dict[tuple[str, str], int]  # (stage, option name) -> its line in the file
     prompts: list[Prompt] = field(default_factory=list)
+    #: more files whose change reruns a stage: the feature maps or the encoder's manifest
+    #: (extract); the text embeddings, the bundle's manifest, a given RES index (query)
+    extract_inputs: list[str] = field(default_factory=list)
+    query_inputs: list[str] = field(default_factory=list)
 
     @property
     def fitted(self) -> bool:
@@ -200,12 +205,16 @@ class Batch:
                 s.name: {
                     "scene_args": s.scene_args,
                     "inputs": s.inputs,
+                    "extract_inputs": s.extract_inputs,
+                    "query_inputs": s.query_inputs,
                     "fitted": s.fitted,
                     "extract_args": s.extract_args or [],
                     "query_args": s.query_args,
                     "index_bundle": s.index_bundle,
                     "options": s.options,
-                    "prompts": {p.key: {"text": p.text, "id": p.id} for p in s.prompts},
+                    "prompts": {
+                        p.key: {"text": p.text, "id": p.id, "masks": p.masks} for p in s.prompts
+                    },
                 }
                 for s in self.scenes
             },
@@ -357,12 +366,27 @@ def _scene(c: Checker, node: Node, key: str, defaults: dict[str, Node], base: Pa
                 f"line {by_key[k]}); both would write the same answer"
             )
         by_key[k] = p.line
-        prompts.append(Prompt(text, pid, k))
+        masks = _files(res_masks / (pid or k), "*.png") if res_masks is not None else []
+        prompts.append(Prompt(text, pid, k, masks or _files(res_masks, "*.png")))
     inputs = [str(scene.ply_path.resolve()), *(str(f.resolve()) for f in scene.camera_files)]
+    extract_inputs = [*_files(features, "*.npy"), *_files(features, "*.pt")]
+    extract_inputs += _files(feature_bundle, "manifest.json")
+    query_inputs = [*_files(bundle, "manifest.json")]
+    for k in ("text_embeddings", "res_index"):
+        p = local(k)
+        if p is not None and p.is_file():
+            query_inputs.append(str(p.resolve()))
     return SceneJob(
         name, node.line, scene_args, inputs, extract_args, query_args, index_bundle, options,
-        option_lines, prompts,
+        option_lines, prompts, extract_inputs, query_inputs,
     )  # fmt: skip
+
+
+def _files(directory: Path | None, pattern: str) -> list[str]:
+    """The files of `directory` matching `pattern` (none when it is not a directory)."""
+    if directory is None or not directory.is_dir():
+        return []
+    return sorted(str(f.resolve()) for f in directory.glob(pattern) if f.is_file())
 
 
 def _prompt(p: Node) -> tuple[str, str | None]:
