@@ -17,7 +17,7 @@ from typing import Any
 
 from schemas import current_version, definition
 from stages.core.errors import GoiError
-from stages.core.files import MAX_TEXT_BYTES, read_text
+from stages.core.files import read_text
 from stages.query.prompts import safe_name
 from stages.scene.scene import load_scene
 
@@ -28,6 +28,16 @@ STAGES = ("extract", "init-codebook", "fit-field", "index-res", "query")
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,99}")
 #: Option names of `options`: what goi's click options are made of.
 _OPTION = re.compile(r"[a-z][a-z0-9-]*")
+#: Options goi batch sets from a scene's keys and the batch's layout: not in `options`.
+RESERVED = {
+    "scene", "ply", "cameras", "images", "out", "from", "bundle", "features", "codebook",
+    "field", "prompt", "prompt-id", "text-embeddings", "res-masks", "res-index", "lift",
+}  # fmt: skip
+#: A configuration is small: larger files, deeper nesting or more values are refused (YAML
+#: aliases can make a small file a huge or endless tree).
+MAX_BYTES = 16 << 20
+MAX_DEPTH = 32
+MAX_VALUES = 200_000
 
 
 @dataclass
@@ -42,7 +52,7 @@ def read_config(path: Path) -> Node:
     """The file as a tree of Nodes; YAML or JSON, one key twice is refused."""
     import yaml
 
-    text = read_text(path, "batch configuration", MAX_TEXT_BYTES)
+    text = read_text(path, "batch configuration", MAX_BYTES)
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as e:
@@ -52,17 +62,23 @@ def read_config(path: Path) -> Node:
         raise GoiError(f"{path}: not valid YAML or JSON{where}: {problem}") from None
     if root is None:
         raise GoiError(f"{path}: empty; a batch configuration lists its scenes")
-    return _tree(root, path)
+    return _tree(root, path, [0], 0)
 
 
-def _tree(node: Any, path: Path) -> Node:
+def _tree(node: Any, path: Path, count: list[int], depth: int) -> Node:
     import yaml
 
     line = node.start_mark.line + 1
+    count[0] += 1
+    if depth > MAX_DEPTH or count[0] > MAX_VALUES:
+        raise GoiError(
+            f"{path}: line {line}: nested deeper than {MAX_DEPTH} levels or more than "
+            f"{MAX_VALUES} values (YAML aliases?); a batch configuration is a short list"
+        )
     if isinstance(node, yaml.MappingNode):
         out: dict[str, Node] = {}
         for k, v in node.value:
-            key = _tree(k, path)
+            key = _tree(k, path, count, depth + 1)
             if not isinstance(key.value, str):
                 raise GoiError(f"{path}: line {key.line}: a key must be text, found {key.value!r}")
             if key.value in out:
@@ -70,10 +86,10 @@ def _tree(node: Any, path: Path) -> Node:
                     f"{path}: line {key.line}: key '{key.value}' appears twice in one mapping "
                     f"(first on line {out[key.value].line})"
                 )
-            out[key.value] = _tree(v, path)
+            out[key.value] = _tree(v, path, count, depth + 1)
         return Node(out, line)
     if isinstance(node, yaml.SequenceNode):
-        return Node([_tree(v, path) for v in node.value], line)
+        return Node([_tree(v, path, count, depth + 1) for v in node.value], line)
     try:
         value = yaml.SafeLoader("").construct_object(node)  # a scalar, typed by YAML's rules
     except yaml.YAMLError as e:
@@ -150,6 +166,11 @@ class Checker:
                 where = f"{key}.{stage}.{name}"
                 if not _OPTION.fullmatch(name):
                     raise self.fail(v, where, "is not an option name (e.g. iterations)")
+                if name in RESERVED:
+                    raise self.fail(
+                        v, where, "is set by goi batch from the scene's keys and the batch's "
+                        "layout; give it as a scene key, or leave it out"
+                    )  # fmt: skip
                 if isinstance(v.value, dict | list) or v.value is None:
                     raise self.fail(v, where, "should be a number, text, true or false")
 

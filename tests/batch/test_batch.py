@@ -181,6 +181,10 @@ def test_configuration_errors_name_the_key_and_its_line(scenes, tmp_path):
     assert msg == f"{cfg}: line 1: 'defaults.lift' should be bool, found a number"
     msg = _error(cfg, 'schema_version: "2.0"\nscenes:\n' + one)
     assert "not readable by this goi" in msg
+    msg = _error(cfg, "defaults: {options: {query: {field: f.h5}}}\nscenes:\n" + one)
+    assert msg.startswith(f"{cfg}: line 1: 'defaults.options.query.field' is set by goi batch")
+    msg = _error(cfg, "a: &a [*a]\n")  # an alias to itself: an endless tree
+    assert msg.startswith(f"{cfg}: line 1: nested deeper than 32 levels")
     # JSON too, with its lines
     cfg = tmp_path / "c.json"
     doc = {"scenes": [{"scene": str(a / "scene"), "features": "f", "prompts": ["x"]}]}
