@@ -24,7 +24,7 @@ from typing import Annotated
 
 from stages.batch.config import Batch, SceneJob
 from stages.core.errors import GoiError
-from stages.core.files import make_dir, refuse_if_input
+from stages.core.files import make_dir, output_lock, refuse_if_input
 from stages.core.params import Range
 from stages.core.report import SILENT, Report
 
@@ -98,10 +98,20 @@ def snakemake_available() -> None:
 def run_batch(
     batch: Batch, run: BatchRun, extra: list[str], report: Report = SILENT
 ) -> BatchResult:
+    """Run the batch's workflow (`extra`: Snakemake's own arguments) and summarise it."""
     snakemake_available()
     out = make_dir(run.out or batch.out, "--out").resolve()
-    state = out / ".goi-batch"
-    state.mkdir(exist_ok=True)
+    state = make_dir(out / ".goi-batch", "--out")
+    # One goi batch per output directory, dry runs included: the plan a running batch's jobs
+    # read (a cluster job reads it again) is never rewritten under them, and the summary never
+    # counts another run's jobs as this one's.
+    with output_lock(state / "run", "--out"):
+        return _run(batch, run, extra, out, state, report)
+
+
+def _run(
+    batch: Batch, run: BatchRun, extra: list[str], out: Path, state: Path, report: Report
+) -> BatchResult:
     plan = state / "plan.json"
     refuse_if_input(plan, "--out")
     tmp = plan.with_name(plan.name + ".tmp")
@@ -124,9 +134,10 @@ def run_batch(
     n_jobs = sum(
         len(s.prompts) + (3 if s.fitted else 0) + bool(s.index_bundle) for s in batch.scenes
     )
+    n_prompts = sum(len(s.prompts) for s in batch.scenes)
     report.log(
-        f"{len(batch.scenes)} scenes, {sum(len(s.prompts) for s in batch.scenes)} prompts "
-        f"({n_jobs} jobs when nothing is done yet) in {out}, executor {run.executor}"
+        f"{_count(len(batch.scenes), 'scene')}, {_count(n_prompts, 'prompt')} "
+        f"({_count(n_jobs, 'job')} when nothing is done yet) in {out}, executor {run.executor}"
     )
     start = time.time()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -136,6 +147,10 @@ def run_batch(
     stdout = None if run.dry_run else 2
     rc = subprocess.run(cmd, stdout=stdout, env=env, check=False).returncode
     return BatchResult(out, rc, run.dry_run, [_summary(out, s, start) for s in batch.scenes])
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}{'s' * (n != 1)}"
 
 
 def _missing_intermediates(out: Path, batch: Batch) -> list[str]:

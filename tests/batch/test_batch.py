@@ -207,6 +207,17 @@ def test_the_cli_refuses_a_bad_configuration_in_one_line(scenes, tmp_path, capsy
         "--iteratons (see goi fit-field --help)"
     )
     assert not (tmp_path / "goi-batch").exists()
+    # a batch already running on the same output directory: refused before Snakemake starts
+    from stages.core.files import output_lock
+
+    cfg.write_text(cfg.read_text().replace("iteratons", "iterations"))
+    state = tmp_path / "goi-batch" / ".goi-batch"
+    state.mkdir(parents=True)
+    with output_lock(state / "run", "--out"):
+        assert main(["batch", str(cfg), "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"goi: error: --out: {state / 'run'} is being written by another goi")
+    assert "\n" not in err and not (state / "plan.json").exists()
     # without the extra: one line saying what to install
     import importlib.util
 
