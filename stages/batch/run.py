@@ -10,19 +10,19 @@ Snakemake's messages.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import importlib.util
 import json
 import os
 import subprocess
 import sys
-import time
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Annotated
 
-from stages.batch.config import Batch, SceneJob
+from stages.batch.config import Batch, Prompt, SceneJob
 from stages.core.errors import GoiError
 from stages.core.files import make_dir, output_lock, refuse_if_input
 from stages.core.params import Range
@@ -139,14 +139,14 @@ def _run(
         f"{_count(len(batch.scenes), 'scene')}, {_count(n_prompts, 'prompt')} "
         f"({_count(n_jobs, 'job')} when nothing is done yet) in {out}, executor {run.executor}"
     )
-    start = time.time()
+    before = _stamps(out, batch)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     # Snakemake prints its own progress; it goes to stderr (file descriptor 2) with goi's
     # news, and the table to stdout. A dry run has no table: what Snakemake prints on stdout
     # (e.g. `-- --dag`, the graph in DOT) stays there.
     stdout = None if run.dry_run else 2
     rc = subprocess.run(cmd, stdout=stdout, env=env, check=False).returncode
-    return BatchResult(out, rc, run.dry_run, [_summary(out, s, start) for s in batch.scenes])
+    return BatchResult(out, rc, run.dry_run, [_summary(out, s, before) for s in batch.scenes])
 
 
 def _count(n: int, what: str) -> str:
@@ -167,26 +167,45 @@ def _missing_intermediates(out: Path, batch: Batch) -> list[str]:
     return targets
 
 
-def _summary(out: Path, scene: SceneJob, start: float) -> SceneSummary:
-    """What the jobs of one scene did in this run, from the files they wrote after `start`."""
-    name = scene.name
-    s = SceneSummary(name, prompts=len(scene.prompts))
-    logs = out / name / "logs"
+def _answer(out: Path, scene: SceneJob, p: Prompt) -> Path:
+    return out / scene.name / "prompts" / p.key / p.key / "selection.h5"
+
+
+def _stamps(out: Path, batch: Batch) -> dict[Path, tuple[int, int, int]]:
+    """(mtime, inode, size) of every log, benchmark and answer of the batch. A file whose
+    stamp changed was written by this run: no clock is compared, so a cluster node's clock
+    that is off does not matter."""
+    files: list[Path] = []
+    for s in batch.scenes:
+        files += (out / s.name / "logs").glob("*.log")
+        files += (out / s.name / "logs").glob("*.tsv")
+        files += [_answer(out, s, p) for p in s.prompts]
+    stamps = {}
+    for f in files:
+        with contextlib.suppress(OSError):
+            st = f.stat()
+            stamps[f] = (st.st_mtime_ns, st.st_ino, st.st_size)
+    return stamps
+
+
+def _summary(out: Path, scene: SceneJob, before: dict[Path, tuple[int, int, int]]) -> SceneSummary:
+    """What the jobs of one scene did in this run, from the files they wrote in it."""
+    now = _stamps(out, Batch(Path(), out, [scene]))
+    fresh = {f for f, st in now.items() if before.get(f) != st}
+    s = SceneSummary(scene.name, prompts=len(scene.prompts))
     # A job that ran wrote its log; one that finished also wrote its benchmark (after it).
-    for log in sorted(logs.glob("*.log"), key=lambda p: p.stat().st_mtime):
-        if log.stat().st_mtime < start:
-            continue
+    for log in sorted((f for f in fresh if f.suffix == ".log"), key=lambda f: now[f][0]):
         bench = log.with_suffix(".tsv")
-        if bench.is_file() and bench.stat().st_mtime >= start:
+        if bench in fresh:
             s.stages.append(log.stem)
             s.seconds += _seconds(bench)
         else:
             s.failed.append(log)
     for p in scene.prompts:
-        answer = out / name / "prompts" / p.key / p.key / "selection.h5"
-        if answer.is_file():
+        answer = _answer(out, scene, p)
+        if answer in now:
             s.answers += 1
-            s.new_answers += answer.stat().st_mtime >= start
+            s.new_answers += answer in fresh
     return s
 
 
