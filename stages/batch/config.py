@@ -150,6 +150,8 @@ class Checker:
         elif isinstance(v, str) and "str" in kinds:
             if not v.strip():
                 raise self.fail(node, key, "is empty")
+        elif isinstance(v, int | float) and "number" in kinds:
+            pass
         else:
             raise self.fail(node, key, f"should be {' or '.join(kinds)}, found {_kind(v)}")
 
@@ -260,7 +262,8 @@ def load_batch(path: Path, out: Path | None = None) -> Batch:
             )
     base = path.parent
     if out is None:
-        out = base / str(top["out"].value) if "out" in top else base / "goi-batch"
+        given = Path(os.path.expanduser(top["out"].value)) if "out" in top else None
+        out = base / given if given is not None else base / "goi-batch"
     defaults = top["defaults"].value if "defaults" in top else {}
     scenes_node = top["scenes"]
     if not scenes_node.value:
