@@ -2,10 +2,10 @@
 
 Snakemake runs as `python -m snakemake` in a child process of the same interpreter (so its
 jobs, which run `python -m goi`, see the same goi), in the batch's output directory: its
-metadata (`.snakemake/`) and its lock live there, so a rerun of the same batch runs only what
-is out of date, and a second `goi batch` of one output directory is refused by Snakemake.
-The summary is made from the files the jobs wrote (each rule's benchmark and log), not from
-Snakemake's messages.
+metadata (`.snakemake/`) lives there, so a rerun of the same batch runs only what is out of
+date; goi's own lock there refuses a second `goi batch` of one output directory. The summary
+is made from the files the jobs wrote (each rule's benchmark and log), not from Snakemake's
+messages.
 """
 
 from __future__ import annotations
