@@ -120,6 +120,9 @@ def test_score_map_is_the_blend_weighted_sum_of_the_scores(tmp_path):
     half = score_map(proj, bins, np.full(g.count, 0.5), cam.width, cam.height)
     np.testing.assert_allclose(half, 0.5 * alpha, atol=1e-5)
     assert (got[alpha == 0] == 0).all() and (alpha == 0).any()
+    both = score_map(proj, bins, np.stack([s, 1 - s], 1), cam.width, cam.height)  # [H, W, 2]
+    np.testing.assert_allclose(both[:, :, 0], got, atol=1e-6)
+    np.testing.assert_allclose(both[:, :, 1], alpha - got, atol=1e-5)
     sel = s < 0.3
     binary = score_map(proj, bins, sel, cam.width, cam.height) > 0.5 * alpha
     assert np.array_equal(binary, selection_mask(proj, bins, sel, cam.width, cam.height))

@@ -272,9 +272,8 @@ def run_benchmark(
         }
         for variant in variants:
             preds: dict[str, dict[str, np.ndarray]] = {}
-            maps: dict[str, dict[str, np.ndarray]] | None = (
-                {} if benchmark in SCORE_MAP_BENCHMARKS else None
-            )
+            scores: dict[str, np.ndarray] = {}  # query id -> [G] the answer's scores
+            maps: dict[str, dict[str, np.ndarray]] | None = None
             for prompt in report.progress(s.room.prompts, f"{name} {variant}", show=_pid):
                 text = s.room.embeddings[prompt.text]
                 t0 = time.perf_counter()
@@ -285,15 +284,11 @@ def run_benchmark(
                 )
                 timer.add(f"query_{variant}", time.perf_counter() - t0)
                 preds[prompt.id] = pred.masks
-                if maps is not None and pred.scores is not None:
-                    with timer(f"score_map_{variant}"):  # the per-Gaussian score, rendered
-                        maps[prompt.id] = {}
-                        for v in views:
-                            cam = models.cams[v]
-                            proj, bins = models.rast.prepare(cam)
-                            maps[prompt.id][v] = score_map(
-                                proj, bins, pred.scores, cam.width, cam.height
-                            )
+                if pred.scores is not None:
+                    scores[prompt.id] = pred.scores
+            if benchmark in SCORE_MAP_BENCHMARKS and len(scores) == len(preds):
+                with timer(f"score_map_{variant}"):
+                    maps = frame_score_maps(models, s.room.prompts, scores)
             with timer("metrics"):
                 proto, detail = protocol_scores(benchmark, s.bench, preds, maps)
                 own = goi_scores(s.bench, preds)
@@ -311,6 +306,27 @@ def run_benchmark(
         validate_json(doc, "goi.eval", str(run.out))
         write_json(run.out, doc, force=True)
     return EvalResult(doc, Path(run.out), run.html)
+
+
+def frame_score_maps(
+    models: Answerers, prompts: list[Prompt], scores: dict[str, np.ndarray]
+) -> dict[str, dict[str, np.ndarray]]:
+    """{query id: {frame: [H, W] float32}}: the queries' per-Gaussian scores rendered as
+    continuous maps, all the queries of a frame in one tile walk ([G, K] channels)."""
+    out: dict[str, dict[str, np.ndarray]] = {q: {} for q in scores}
+    frames: dict[str, list[str]] = {}
+    for p in prompts:
+        if p.id in scores:
+            for v in p.test_views:
+                frames.setdefault(v, []).append(p.id)
+    for v, ids in frames.items():
+        cam = models.cams[v]
+        proj, bins = models.rast.prepare(cam)
+        stack = np.stack([scores[q] for q in ids], axis=1)  # [G, K]
+        img = score_map(proj, bins, stack, cam.width, cam.height)  # [H, W, K]
+        for k, q in enumerate(ids):
+            out[q][v] = np.ascontiguousarray(img[:, :, k])
+    return out
 
 
 def thumbnails(
