@@ -5,9 +5,12 @@ against the same run's query time (the baseline).
 Per benchmark (seconds, medians of `repeat` runs unless named otherwise):
   <b>_read_s           reading and matching the scene's annotations (2 frames, 3-5 queries)
   <b>_metric_s         the protocol's metric and goi's own on every (frame, query), one variant
+                       (lerf-ovs, 3d-ovs: on the 0/1 masks and on the score maps)
+  <b>_score_map_s      lerf-ovs, 3d-ovs: rendering the score maps of all queries on the frames
+                       (one run, its `score_map_full` timing)
   <b>_query_s          baseline: goi's `full` answers of all queries on the frames (one run of
                        `goi eval --benchmark`, its `query_full` timing; fields fitted outside)
-  <b>_added_ratio      (read + metric) / query
+  <b>_added_ratio      (read + metric + score map) / query
 Frames are 640x480 (3D-OVS: 1280x960 images scored at 1/8), 20k Gaussians.
 """
 
@@ -19,7 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from stages.evaluation.benchmarks.run import BENCHMARKS, load_bench_scene, run_benchmark
-from stages.evaluation.benchmarks.scoring import goi_scores, gt_bool, protocol_scores
+from stages.evaluation.benchmarks.scoring import (
+    SCORE_MAP_BENCHMARKS,
+    goi_scores,
+    gt_bool,
+    protocol_scores,
+)
 from stages.evaluation.pipeline import EvalParams, EvalRun
 from stages.query.prompts import load_text_embeddings
 from stages.testing.public_layouts import synthetic_benchmark
@@ -49,8 +57,12 @@ def suite_public_eval(repeat: int, tmp: Path, median_s: Callable) -> dict[str, f
             for q in bench.queries
         }
 
-        def metric(b=b, bench=bench, preds=preds) -> None:  # noqa: ANN001
-            protocol_scores(b, bench, preds)
+        maps = None
+        if b in SCORE_MAP_BENCHMARKS:
+            maps = {q: {c: m.astype(np.float32) for c, m in v.items()} for q, v in preds.items()}
+
+        def metric(b=b, bench=bench, preds=preds, maps=maps) -> None:  # noqa: ANN001
+            protocol_scores(b, bench, preds, maps)
             goi_scores(bench, preds)
 
         read = median_s(
@@ -61,8 +73,11 @@ def suite_public_eval(repeat: int, tmp: Path, median_s: Callable) -> dict[str, f
         )
         met = median_s(metric, repeat)
         query = float(doc["timings_s"]["query_full"])
+        maps_s = float(doc["timings_s"].get("score_map_full", 0.0))
         out[f"{b}_read_s"] = read
         out[f"{b}_metric_s"] = met
+        if b in SCORE_MAP_BENCHMARKS:
+            out[f"{b}_score_map_s"] = maps_s
         out[f"{b}_query_s"] = query
-        out[f"{b}_added_ratio"] = (read + met) / query if query else float(np.nan)
+        out[f"{b}_added_ratio"] = (read + met + maps_s) / query if query else float(np.nan)
     return out

@@ -32,11 +32,11 @@ import numpy as np
 from stages.core.errors import warn
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
 from stages.query.lifted import MaskSource, lift_prompt, lifted_masks, view_visibility
-from stages.query.lifting import LiftParams
+from stages.query.lifting import LiftParams, vote_share
 from stages.query.masks import mask_of
-from stages.query.osh import Counts, HyperplaneParams, fit_osh, threshold_plane
+from stages.query.osh import Counts, HyperplaneParams, fit_osh, probability, threshold_plane
 from stages.query.res import NothingFound, ResFiles, ResSource, choose_views
-from stages.query.selection import select
+from stages.query.selection import plane_probability, select
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.gaussians import Gaussians
@@ -63,6 +63,9 @@ class Prediction:
     masks: dict[str, np.ndarray]  # test view -> [H, W] bool
     selected: np.ndarray  # [G] bool, the Gaussians of interest
     info: dict = field(default_factory=dict)  # how the answer was reached (fit record)
+    # [G] float32 in [0, 1]: the answer as a continuous per-Gaussian score (the plane's
+    # probability, or the lifted vote's share), for the protocols built on relevancy maps
+    scores: np.ndarray | None = None
 
 
 @dataclass
@@ -139,9 +142,10 @@ def predict_lifted(
     hp: HyperplaneParams,
     lp: LiftParams,
     views: list[str],
+    entry: np.ndarray | None = None,
 ) -> Prediction:
     """The lifted answer (with the field, or field-free from a bare Rasterizer and text None)
-    and its masks on the test views."""
+    and its masks on the test views; `entry` [G]: the field's decoded entries, when known."""
     # mask files stand in for a model that answers on the views goi picks; a bundle's RES
     # model answers on them itself
     src: MaskSource = source
@@ -158,7 +162,12 @@ def predict_lifted(
         "n_evident": rec["n_evident"],
         "fusion": rec["fusion"],
     }
-    return Prediction(masks, ans.selected, info)
+    fallback = None
+    if ans.plane is not None and isinstance(renderer, SemanticRenderer):
+        if entry is None:
+            entry = renderer.decode(renderer.field.features)
+        fallback = plane_probability(renderer.field, ans.plane, entry)
+    return Prediction(masks, ans.selected, info, vote_share(ans.lifted, lp, fallback))
 
 
 @dataclass
@@ -184,6 +193,13 @@ class TfccModel:
     views: dict[str, DecodedView]  # test view -> decoded render (with RGB, for the pages)
     cams: dict[str, Camera]  # test view -> camera
     visibility: VisibilityCache
+    _entry: np.ndarray | None = None  # [G] each Gaussian's decoded entry, once for all prompts
+
+    @property
+    def entry(self) -> np.ndarray:
+        if self._entry is None:  # the renderer's kernel: no [G, N] logits
+            self._entry = self.renderer.decode(self.field.features)
+        return self._entry
 
     def predict(
         self,
@@ -205,12 +221,14 @@ class TfccModel:
             except NothingFound as e:  # an empty answer, as goi query gives
                 warn(f"{e}: the answer is empty")
                 masks = {v: np.zeros(self.views[v].covered.shape, bool) for v in views}
-                return Prediction(masks, np.zeros(self.field.seen.shape, bool), {"fit_views": []})
+                none = np.zeros(self.field.seen.shape, bool)
+                return Prediction(masks, none, {"fit_views": []}, none.astype(np.float32))
             info = _fit_record(plane.info, json.loads(plane.info["views"]))
         else:
             plane = threshold_plane(prompt, text, self.field.unit_codebook(), hp.threshold)
         masks = {v: mask_of(plane, self.views[v]) for v in views}
-        return Prediction(masks, select(self.field, plane), info)
+        scores = plane_probability(self.field, plane, self.entry)
+        return Prediction(masks, select(self.field, plane), info, scores)
 
 
 @dataclass
@@ -238,8 +256,10 @@ class DirectModel:
             W, b, rec = fit_direct_plane(self.renderer, chosen, text, hp, seed)
             info = _fit_record(rec, [c.name for c, _ in chosen])
         masks = {v: self.views[v].scores(self.field, W, b) > 0 for v in views}
-        selected = self.field.seen & (self.gaussians @ W.astype(np.float32) + b > 0)
-        return Prediction(masks, selected, info)
+        z = self.gaussians @ W.astype(np.float32) + b  # [G]
+        selected = self.field.seen & (z > 0)
+        scores = np.where(self.field.seen, probability(z), 0.0).astype(np.float32)
+        return Prediction(masks, selected, info, scores)
 
 
 @dataclass
@@ -299,6 +319,7 @@ class Answerers:
                 hp,
                 lp,
                 views,
+                self.tfcc.entry if variant == "lifted" and self.tfcc is not None else None,
             )
         if FIELD_KIND[variant] == "tfcc":
             assert self.tfcc is not None

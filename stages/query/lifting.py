@@ -286,6 +286,18 @@ def fuse(
     return Lifted(sel, evident, S1, S0, confidence, info)
 
 
+def vote_share(lifted: Lifted, p: LiftParams, fallback: np.ndarray | None) -> np.ndarray:
+    """[G] float32 in [0, 1], the lifted answer as a continuous score: the masks' share
+    S1 / (S1 + S0) where the evidence reaches min_evidence, else `fallback` (the field's
+    probability, [G]) or 0 without a field. The selection's own cut is the vote with its
+    background bias, the entry rules and the guard, so 0.5 is not exactly its boundary."""
+    E = lifted.S1 + lifted.S0
+    evident = E >= p.min_evidence
+    share = np.divide(lifted.S1, E, out=np.zeros_like(E), where=evident)
+    rest = np.zeros_like(E) if fallback is None else fallback
+    return np.where(evident, share, rest).astype(np.float32)
+
+
 def guard(
     sel: np.ndarray, field_sel: np.ndarray, S1: np.ndarray, S0: np.ndarray, p: LiftParams
 ) -> tuple[np.ndarray, bool]:

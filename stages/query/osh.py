@@ -69,6 +69,12 @@ class Hyperplane:
         return self.scores > 0
 
 
+def probability(z: np.ndarray) -> np.ndarray:
+    """s(z) = 1 / (1 + e^-z) as float32: the logistic model the OSH is fitted with, read as each
+    point's probability of being of interest (above 0.5 exactly where W x + b > 0)."""
+    return (0.5 * (1.0 + np.tanh(0.5 * np.asarray(z, np.float64)))).astype(np.float32)
+
+
 def threshold_plane(
     prompt: str, text: np.ndarray, unit_codebook: np.ndarray, threshold: float
 ) -> Hyperplane:

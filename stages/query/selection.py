@@ -17,7 +17,7 @@ import numpy as np
 
 from stages.core.artifacts import open_h5, put, write_h5
 from stages.core.errors import GoiError
-from stages.query.osh import Hyperplane
+from stages.query.osh import Hyperplane, probability
 from stages.semantics.field import Field
 
 SCHEMA = "goi.selection"
@@ -26,6 +26,14 @@ SCHEMA = "goi.selection"
 def select(field: Field, plane: Hyperplane) -> np.ndarray:
     """[G] bool: the Gaussians of interest."""
     return field.seen & plane.positive[field.decode_index(field.features)]
+
+
+def plane_probability(field: Field, plane: Hyperplane, entry: np.ndarray | None = None):
+    """[G] float32: each Gaussian's probability of interest under the plane, s(W T_k + b) of
+    its decoded codebook entry k (0 for Gaussians no view saw, which select() never takes);
+    above 0.5 exactly for the selected ones. `entry` [G]: the decoded entries, when known."""
+    k = field.decode_index(field.features) if entry is None else entry
+    return np.where(field.seen, probability(plane.scores)[k], 0.0).astype(np.float32)
 
 
 @dataclass

@@ -137,3 +137,14 @@ def selection_mask(proj: Projected, bins: Bins, selected: np.ndarray, width: int
     two agree, and it has none of the per-pixel speckle of decoding the field."""
     r = render(proj, bins, np.asarray(selected, np.float32)[:, None], width, height)
     return r.image[:, :, 0] > 0.5 * r.alpha
+
+
+def score_map(proj: Projected, bins: Bins, scores: np.ndarray, width: int, height: int):
+    """[H, W] float32: a per-Gaussian score [G] composited like a colour, sum_i w_i s_i over the
+    pixel's blend weights w_i (0 where nothing is drawn, so the background scores 0). With the
+    0/1 selection as `scores` it is the map selection_mask compares against half the alpha;
+    with a probability it is the continuous answer a relevancy-map protocol expects. Scores
+    [G, K] (K queries at once: one tile walk for all) give [H, W, K]."""
+    s = np.asarray(scores, np.float32)
+    r = render(proj, bins, s[:, None] if s.ndim == 1 else s, width, height)
+    return r.image[:, :, 0] if s.ndim == 1 else r.image

@@ -142,3 +142,39 @@ def test_a_prediction_of_another_size_is_refused_where_the_protocol_does_not_res
     with pytest.raises(GoiError, match="a prediction of 3x3 for the 2x2 ground truth of 'A'"):
         protocol_scores("lerf-ovs", scene, preds)
     assert protocol_scores("goi-m360", scene, preds)[0]["miou"] >= 0  # resized bilinear
+
+
+def test_lerf_ovs_score_map_resolves_what_the_binary_map_cannot():
+    """A 25x25 object (the box) and a 60x60 distractor both in goi's 0/1 mask: the 30x30 mean
+    peaks on the distractor (a miss) and the distractor survives the threshold. The score map
+    (object 1.0, distractor 0.5) peaks on the object (25*25/900 = 0.69 > 0.5) and its
+    normalised distractor (about 0.5 / 0.85 < 0.7) falls under the 0.4 cut of 2n - 1."""
+    gt = np.zeros((120, 160), bool)
+    gt[20:45, 20:45] = True
+    binary = gt.copy()
+    binary[40:100, 80:140] = True
+    score = np.where(gt, 1.0, np.where(binary, 0.5, 0.0)).astype(np.float32)
+    cam = front_camera(160, 120, "f1")
+    frame = Frame("f1", cam, None, {"A": gt}, {"A": np.array([[20, 20, 44, 44]])})  # type: ignore[arg-type]
+    scene = BenchmarkScene("s", None, [Query("A", "a")], [frame])  # type: ignore[arg-type]
+    figs, detail = protocol_scores("lerf-ovs", scene, {"A": {"f1": binary}}, {"A": {"f1": score}})
+    assert figs["localisation_accuracy"] == 0 and figs["localisation_accuracy_score_map"] == 1
+    assert figs["miou"] < 0.3 and figs["miou_score_map"] > 0.9
+    assert figs["goi_binary_miou"] == pytest.approx(625 / (625 + 3600))  # no overlap
+    assert detail["A"]["f1"]["localised_score_map"] and not detail["A"]["f1"]["localised"]
+    assert "miou_score_map" not in protocol_scores("lerf-ovs", scene, {"A": {"f1": binary}})[0]
+
+
+def test_three_d_ovs_argmax_over_score_maps_by_hand():
+    """Both classes claim both pixels in 0/1 (ties go to the first class: accuracy 1/2, IoU
+    1/2 and 0); their scores [0.9, 0.4] and [0.2, 0.7] split them (accuracy 1, IoU 1 and 1)."""
+    cam = front_camera(2, 1, "f1")
+    gts = {"A": np.array([[1, 0]], np.uint8), "B": np.array([[0, 1]], np.uint8)}
+    frame = Frame("f1", cam, None, gts)  # type: ignore[arg-type]
+    scene = BenchmarkScene("s", None, [Query("A", "a"), Query("B", "b")], [frame])  # type: ignore[arg-type]
+    both = np.ones((1, 2), bool)
+    maps = {"A": {"f1": np.array([[0.9, 0.4]])}, "B": {"f1": np.array([[0.2, 0.7]])}}
+    figs, detail = protocol_scores("3d-ovs", scene, {"A": {"f1": both}, "B": {"f1": both}}, maps)
+    assert figs["accuracy"] == 0.5 and figs["miou"] == pytest.approx(0.25)
+    assert figs["accuracy_score_map"] == 1 and figs["miou_score_map"] == 1
+    assert detail["B"]["f1"] == {"iou": 0.0, "iou_score_map": 1.0}

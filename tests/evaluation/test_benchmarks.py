@@ -39,14 +39,17 @@ def test_benchmark_scored_end_to_end(tmp_path, benchmark, capsys):
     assert main(_argv(s, benchmark, out, "--html", str(html), "--variants", variants)) == 0
     r = json.loads(out.read_text())
     validate_json(r, "goi.eval", str(out))
-    assert r["schema_version"] == "1.2" and r["benchmark"]["name"] == benchmark
+    assert r["schema_version"] == "1.3" and r["benchmark"]["name"] == benchmark
     scene = r["benchmark"]["scenes"]["toy"]
     assert scene["n_frames"] == 2 and not scene["skipped"]
     for v in variants.split(","):
         figs = scene["variants"][v]
         assert set(figs["queries"]) == set(s["queries"].values())
         for value in figs["protocol"].values():
-            assert 0.5 <= value <= 1  # the boxes are found
+            assert 0.5 <= value <= 1  # the boxes are found (by the mask and the score map)
+        if benchmark in ("lerf-ovs", "3d-ovs"):
+            assert "miou_score_map" in figs["protocol"]
+            assert f"score_map_{v}" in r["timings_s"]
         assert r["variants"][v]["protocol"] == figs["protocol"]  # one scene: the mean is it
         assert 0.5 <= figs["goi"]["miou"] <= 1
     assert r["timings_s"]["read_annotations"] >= 0 and r["timings_s"]["metrics"] >= 0
@@ -59,8 +62,9 @@ def test_benchmark_scored_end_to_end(tmp_path, benchmark, capsys):
     if benchmark in ("goi-m360", "replica-goi"):
         want = "0.8646" if benchmark == "goi-m360" else "0.6169"  # GOI's own mean mIoU
         assert "GOI paper" in page and want in page
-    else:
-        assert "No published figures are shown" in page
+    else:  # LangSplat / LangSplatV2 / Gaussian Grouping, with protocol and source
+        want = {"lerf-ovs": "0.5990", "lerf-mask": "0.7280", "3d-ovs": "0.9340"}[benchmark]
+        assert "(published)" in page and "read in:" in page and want in page
     printed = capsys.readouterr().out
     assert "protocol" in printed and "goi mIoU" in printed
 

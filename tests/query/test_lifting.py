@@ -5,8 +5,8 @@ import pytest
 
 from stages.core.errors import GoiError, GoiWarning
 from stages.query.lifted import lift_prompt, lifted_masks, view_evidence, view_visibility
-from stages.query.lifting import LiftParams, ViewEvidence, fuse, view_confidence
-from stages.query.osh import HyperplaneParams
+from stages.query.lifting import Lifted, LiftParams, ViewEvidence, fuse, view_confidence, vote_share
+from stages.query.osh import HyperplaneParams, probability
 from stages.query.res import ResFiles
 from stages.query.views import next_view, provisional
 from stages.render.lift import selection_mask
@@ -377,3 +377,16 @@ def test_thin_parts_of_an_object_the_masks_mostly_agree_on():
     sel, _ = decide(S1, S0, entry, np.ones(350, bool), np.array([False, True]), LiftParams())
     assert sel[:200].all()  # the legs too: partly in, and so is their entry (76%)
     assert not sel[200:].any()  # the rim: partly in, but its entry (the floor) is not
+
+
+def test_vote_share_and_the_planes_probability_by_hand():
+    """The continuous scores of the relevancy-map protocols: S1 / E where E >= min_evidence,
+    the field's probability elsewhere (0 without a field); s(z) is 1/2 on the plane."""
+    S1, S0 = np.array([3.0, 0.0, 0.5, 0.0]), np.array([1.0, 2.0, 0.2, 0.0])
+    lf = Lifted(np.zeros(4, bool), np.zeros(4, bool), S1, S0, {})
+    p = LiftParams(min_evidence=1.0)
+    fallback = np.array([0.1, 0.2, 0.3, 0.4], np.float32)
+    np.testing.assert_allclose(vote_share(lf, p, fallback), [0.75, 0.0, 0.3, 0.4])
+    np.testing.assert_allclose(vote_share(lf, p, None), [0.75, 0.0, 0.0, 0.0])
+    z = np.array([0.0, np.log(3.0), -np.log(3.0), 800.0, -800.0])
+    np.testing.assert_allclose(probability(z), [0.5, 0.75, 0.25, 1.0, 0.0], atol=1e-7)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from stages.render.composite import blend_weights
-from stages.render.lift import lift_mask, selection_mask
+from stages.render.lift import lift_mask, score_map, selection_mask
 from stages.render.rasterizer import Rasterizer
 from stages.render.reference import reference_lift, reference_project
 from stages.scene.gaussians import load_ply
@@ -102,3 +102,27 @@ def test_selection_mask_is_the_selected_share(tmp_path):
         selection_mask(proj, bins, np.ones(g.count, bool), cam.width, cam.height).sum()
         == (W.sum(axis=1) > 0).sum()
     )
+
+
+def test_score_map_is_the_blend_weighted_sum_of_the_scores(tmp_path):
+    """sum_i w_i s_i per pixel (the dense weights' product), c * alpha for a constant score,
+    0 where nothing is drawn, and above half the alpha exactly where selection_mask is."""
+    g, r = _scene(tmp_path, n=400, seed=5)
+    cam = front_camera(64, 48)
+    proj, bins = r.prepare(cam)
+    indptr, ids, vals = blend_weights(proj, bins, cam.width, cam.height)
+    W = _dense(indptr, ids, vals, cam.width * cam.height, g.count)
+    s = np.random.default_rng(2).random(g.count).astype(np.float32)
+    got = score_map(proj, bins, s, cam.width, cam.height)
+    assert got.shape == (48, 64) and got.dtype == np.float32
+    np.testing.assert_allclose(got.ravel(), W @ s, atol=1e-5)
+    alpha = W.sum(axis=1).reshape(got.shape)
+    half = score_map(proj, bins, np.full(g.count, 0.5), cam.width, cam.height)
+    np.testing.assert_allclose(half, 0.5 * alpha, atol=1e-5)
+    assert (got[alpha == 0] == 0).all() and (alpha == 0).any()
+    both = score_map(proj, bins, np.stack([s, 1 - s], 1), cam.width, cam.height)  # [H, W, 2]
+    np.testing.assert_allclose(both[:, :, 0], got, atol=1e-6)
+    np.testing.assert_allclose(both[:, :, 1], alpha - got, atol=1e-5)
+    sel = s < 0.3
+    binary = score_map(proj, bins, sel, cam.width, cam.height) > 0.5 * alpha
+    assert np.array_equal(binary, selection_mask(proj, bins, sel, cam.width, cam.height))

@@ -11,7 +11,7 @@ import numpy as np
 from stages.core.artifacts import write_png
 from stages.core.files import make_dir
 from stages.evaluation.benchmarks.common import BenchmarkScene
-from stages.evaluation.benchmarks.published import PUBLISHED
+from stages.evaluation.benchmarks.published import NOTES, OTHERS, PUBLISHED, published_rows
 from stages.evaluation.benchmarks.scoring import PROTOCOLS
 from stages.evaluation.report import esc, fmt, page_files_dir, rel, write_page
 from stages.query.prompts import safe_name
@@ -36,20 +36,6 @@ def _rows(figs_of: dict, protocol: str) -> list[tuple[str, str, dict]]:
         rows.append((v, protocol, figs["protocol"]))
         rows.append((v, GOI_ROW, figs["goi"]))
     return rows
-
-
-def _published(benchmark: str, scene: str, keys: list[str]) -> list[tuple[str, str, dict]]:
-    pub = PUBLISHED.get(benchmark)
-    if pub is None or scene not in pub["rows"]:
-        return []
-    return [
-        (
-            f"{m} (published)",
-            f"{PROTOCOLS[benchmark][0]}; source: {pub['source']}",
-            dict(zip(("miou", "mpa", "mp"), vals, strict=True)),
-        )
-        for m, vals in pub["rows"][scene].items()
-    ]
 
 
 def benchmark_page(
@@ -87,20 +73,26 @@ def benchmark_page(
         "on goi's rendering, the ground truth outlined in green.</p>",
     ]
     pub = PUBLISHED.get(name)
-    if pub is None:
-        body.append(
-            "<p class='key'>No published figures are shown: goi has no citable number for "
-            "this benchmark under this protocol (LangSplat, LangSplatV2 and Gaussian Grouping "
-            "report theirs under their own scripts; compare with their papers directly).</p>"
-        )
-    else:
+    if pub is not None:
         body.append(
             f"<p class='key'>Published figures: {esc(pub['source'])}; {esc(pub['note'])}."
             " They were measured with other RES models, features and training.</p>"
         )
+    if name in OTHERS:
+        body.append(
+            "<p class='key'>Published figures of LangSplat, LangSplatV2 and Gaussian Grouping, "
+            "each row naming the protocol it was measured under and where its numbers were "
+            f"read: {esc(NOTES[name])}. They were measured with other features, models and "
+            "training.</p>"
+        )
+    if pub is None and name not in OTHERS:
+        body.append(
+            "<p class='key'>No published figures are shown: goi has no citable number for "
+            "this benchmark.</p>"
+        )
     mean = {v: {"protocol": r["protocol"], "goi": r["goi"]} for v, r in doc["variants"].items()}
     body.append(f"<h2>Mean over {len(b['scenes'])} scene(s)</h2>")
-    body.append(_table(_rows(mean, protocol) + _published(name, "mean", keys), keys))
+    body.append(_table(_rows(mean, protocol) + published_rows(name, "mean"), keys))
     for scene, entry in b["scenes"].items():
         body.append(
             f"<h2>{esc(scene)}</h2><p class='key'>{entry['n_frames']} frames, "
@@ -112,9 +104,7 @@ def benchmark_page(
             )
             + "</p>"
         )
-        body.append(
-            _table(_rows(entry["variants"], protocol) + _published(name, scene, keys), keys)
-        )
+        body.append(_table(_rows(entry["variants"], protocol) + published_rows(name, scene), keys))
         variants = list(entry["variants"])
         body.append(
             "<table><tr><th class='l'>query</th>"

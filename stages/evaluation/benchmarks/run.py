@@ -35,6 +35,7 @@ from stages.evaluation.benchmarks.page import benchmark_page
 from stages.evaluation.benchmarks.replica_goi import read_replica_goi
 from stages.evaluation.benchmarks.scoring import (
     PROTOCOLS,
+    SCORE_MAP_BENCHMARKS,
     goi_scores,
     gt_bool,
     json_figures,
@@ -61,6 +62,7 @@ from stages.query.lifting import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import load_text_embeddings
 from stages.query.res import ResFiles, ResModel, ResSource
+from stages.render.lift import score_map
 from stages.scene.cameras import Camera
 from stages.scene.formats import load_cameras
 from stages.scene.scene import Scene, _find_ply, load_scene
@@ -270,6 +272,8 @@ def run_benchmark(
         }
         for variant in variants:
             preds: dict[str, dict[str, np.ndarray]] = {}
+            scores: dict[str, np.ndarray] = {}  # query id -> [G] the answer's scores
+            maps: dict[str, dict[str, np.ndarray]] | None = None
             for prompt in report.progress(s.room.prompts, f"{name} {variant}", show=_pid):
                 text = s.room.embeddings[prompt.text]
                 t0 = time.perf_counter()
@@ -280,8 +284,13 @@ def run_benchmark(
                 )
                 timer.add(f"query_{variant}", time.perf_counter() - t0)
                 preds[prompt.id] = pred.masks
+                if pred.scores is not None:
+                    scores[prompt.id] = pred.scores
+            if benchmark in SCORE_MAP_BENCHMARKS and len(scores) == len(preds):
+                with timer(f"score_map_{variant}"):
+                    maps = frame_score_maps(models, s.room.prompts, scores)
             with timer("metrics"):
-                proto, detail = protocol_scores(benchmark, s.bench, preds)
+                proto, detail = protocol_scores(benchmark, s.bench, preds, maps)
                 own = goi_scores(s.bench, preds)
             entry["variants"][variant] = json_figures(
                 {"protocol": proto, "goi": own, "queries": detail}
@@ -297,6 +306,27 @@ def run_benchmark(
         validate_json(doc, "goi.eval", str(run.out))
         write_json(run.out, doc, force=True)
     return EvalResult(doc, Path(run.out), run.html)
+
+
+def frame_score_maps(
+    models: Answerers, prompts: list[Prompt], scores: dict[str, np.ndarray]
+) -> dict[str, dict[str, np.ndarray]]:
+    """{query id: {frame: [H, W] float32}}: the queries' per-Gaussian scores rendered as
+    continuous maps, all the queries of a frame in one tile walk ([G, K] channels)."""
+    out: dict[str, dict[str, np.ndarray]] = {q: {} for q in scores}
+    frames: dict[str, list[str]] = {}
+    for p in prompts:
+        if p.id in scores:
+            for v in p.test_views:
+                frames.setdefault(v, []).append(p.id)
+    for v, ids in frames.items():
+        cam = models.cams[v]
+        proj, bins = models.rast.prepare(cam)
+        stack = np.stack([scores[q] for q in ids], axis=1)  # [G, K]
+        img = score_map(proj, bins, stack, cam.width, cam.height)  # [H, W, K]
+        for k, q in enumerate(ids):
+            out[q][v] = np.ascontiguousarray(img[:, :, k])
+    return out
 
 
 def thumbnails(
@@ -355,12 +385,18 @@ def _pid(p: Prompt | None) -> str | None:
 
 
 _HOW = {
-    "lerf-ovs": "goi's rendered 0/1 mask is the relevancy map (one level); the protocol's "
-    "filter, normalisation, 0.4 threshold and 7x7 majority filter run on it, and localisation "
-    "takes its 30x30 mean's maxima; goi_binary_miou is the raw mask's IoU on the same pairs",
+    "lerf-ovs": "two relevancy maps, one level each: miou / localisation_accuracy take goi's "
+    "rendered 0/1 mask, miou_score_map / localisation_accuracy_score_map the continuous "
+    "score map (each Gaussian's score, the plane's probability s(W x + b) or the lifted "
+    "vote's share, composited by the rasteriser: sum of blend weight x score); the "
+    "protocol's filter, normalisation, 0.4 threshold and 7x7 majority filter run on each, "
+    "and localisation takes its 30x30 mean's maxima; goi_binary_miou is the raw mask's IoU "
+    "on the same pairs",
     "lerf-mask": "goi's binary mask, as 0/255",
-    "3d-ovs": "the per-pixel argmax over the classes' 0/1 masks (sorted class order; a pixel "
-    "claimed by none or several goes to the first of them)",
+    "3d-ovs": "miou / accuracy: the per-pixel argmax over the classes' 0/1 masks (sorted "
+    "class order; a pixel claimed by none or several goes to the first of them); "
+    "miou_score_map / accuracy_score_map: the argmax over the classes' continuous score "
+    "maps (each Gaussian's score composited by the rasteriser; ties to the first class)",
     "goi-m360": "goi's binary mask, rendered at the ground truth's size",
     "replica-goi": "goi's binary mask, rendered at the ground truth's size",
 }

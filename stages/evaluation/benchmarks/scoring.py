@@ -6,12 +6,15 @@ IoU / mPA / mP as goi's own metrics compute them, stages.evaluation.metrics: mea
 frames, then over queries), so that goi's figure and the protocol's stand side by side on the
 same frames.
 
-How goi's binary answer enters each protocol:
-- lerf-ovs: the rendered 0/1 mask is the relevancy map (one level: goi has no scales); the
-  protocol's smoothing, normalisation, threshold and majority filter run on it unchanged, and
-  localisation takes the maxima of its 30x30 mean (the centre of the densest selected area).
+How goi's answer enters each protocol:
+- lerf-ovs: twice, as two relevancy maps of one level each (goi has no scales): the rendered
+  0/1 mask, and (`score_maps`) the continuous score map, each Gaussian's score (the plane's
+  probability or the lifted vote's share) composited by the rasteriser. The protocol's
+  smoothing, normalisation, threshold and majority filter run on each unchanged, and
+  localisation takes the maxima of its 30x30 mean.
 - 3d-ovs: the per-pixel argmax over the classes runs over the 0/1 masks (classes in sorted
-  order); a pixel that no class claims, or several do, goes to the first of them.
+  order; a pixel that no class claims, or several do, goes to the first of them), and over the
+  classes' continuous score maps.
 - goi-m360, replica-goi, lerf-mask: binary masks, as the protocols score them.
 """
 
@@ -43,6 +46,10 @@ PROTOCOLS = {
 }
 
 
+#: the protocols built on a continuous map, which also score goi's score maps
+SCORE_MAP_BENCHMARKS = ("lerf-ovs", "3d-ovs")
+
+
 def gt_bool(gt: np.ndarray) -> np.ndarray:
     """A ground truth as a binary mask: LERF-Mask's greys are in above 128, others are 0/1."""
     return gt > 128 if gt.dtype == np.uint8 else gt.astype(bool)
@@ -68,13 +75,18 @@ def goi_scores(scene: BenchmarkScene, predictions: dict[str, dict[str, np.ndarra
 
 
 def protocol_scores(
-    benchmark: str, scene: BenchmarkScene, predictions: dict[str, dict[str, np.ndarray]]
+    benchmark: str,
+    scene: BenchmarkScene,
+    predictions: dict[str, dict[str, np.ndarray]],
+    score_maps: dict[str, dict[str, np.ndarray]] | None = None,
 ) -> tuple[dict, dict]:
-    """(the scene's figures under the benchmark's protocol, per query and frame detail)."""
+    """(the scene's figures under the benchmark's protocol, per query and frame detail).
+    `score_maps` ({query id: {camera: [H, W] float}}, lerf-ovs and 3d-ovs): the continuous
+    maps, scored as well (the figures' *_score_map keys)."""
     detail: dict[str, dict[str, dict]] = {q.id: {} for q in scene.queries}
 
-    def pred(qid: str, f: Frame) -> np.ndarray:
-        p = predictions[qid][f.camera.name]
+    def pred(qid: str, f: Frame, maps: dict | None = None) -> np.ndarray:
+        p = (predictions if maps is None else maps)[qid][f.camera.name]
         if benchmark in ("lerf-ovs", "3d-ovs") and p.shape != f.gts[qid].shape[:2]:
             raise GoiError(
                 f"{f.source}: a prediction of {p.shape[1]}x{p.shape[0]} for the "
@@ -84,7 +96,7 @@ def protocol_scores(
         return p
 
     if benchmark == "lerf-ovs":
-        ious, goi_ious, hits = [], [], 0
+        ious, goi_ious, hits, map_ious, map_hits = [], [], 0, [], 0
         for f in scene.frames:
             for qid, gt in f.gts.items():
                 r = pred(qid, f).astype(np.float32)  # goi's mask as the relevancy map
@@ -94,12 +106,23 @@ def protocol_scores(
                 goi_ious.append(binary_iou(pred(qid, f), gt))
                 hits += hit
                 detail[qid][f.key] = {"iou": iou, "localised": hit, "goi_iou": goi_ious[-1]}
+                if score_maps is not None:  # the continuous score map as the relevancy map
+                    m = pred(qid, f, score_maps).astype(np.float32)
+                    map_ious.append(binary_iou(lerf_ovs_mask(m).astype(bool), gt))
+                    map_hit = lerf_ovs_localised(m, f.boxes[qid])
+                    map_hits += map_hit
+                    detail[qid][f.key].update(
+                        {"iou_score_map": map_ious[-1], "localised_score_map": map_hit}
+                    )
         pairs = sum(len(f.gts) for f in scene.frames)
         figures = {
             "miou": _mean(ious),
             "localisation_accuracy": hits / pairs if pairs else float("nan"),
             "goi_binary_miou": _mean(goi_ious),  # the raw mask, same (frame, category) pairs
         }
+        if score_maps is not None:
+            figures["miou_score_map"] = _mean(map_ious)
+            figures["localisation_accuracy_score_map"] = map_hits / pairs if pairs else float("nan")
     elif benchmark == "lerf-mask":
         per_q_iou, per_q_biou = [], []
         for q in scene.queries:
@@ -116,7 +139,7 @@ def protocol_scores(
                 per_q_biou.append(_mean(bious))
         figures = {"miou": _mean(per_q_iou), "boundary_miou": _mean(per_q_biou)}
     elif benchmark == "3d-ovs":
-        all_ious, accs = [], []
+        all_ious, accs, map_all, map_accs = [], [], [], []
         for f in scene.frames:
             ids = [q.id for q in scene.queries]  # sorted class order
             masks = np.stack([pred(i, f) for i in ids])  # [C, H, W]
@@ -126,7 +149,17 @@ def protocol_scores(
             accs.append(acc)
             for i, qid in enumerate(ids):
                 detail[qid][f.key] = {"iou": float(class_ious[i])}
+            if score_maps is not None:  # the argmax over the classes' continuous maps
+                maps = np.stack([pred(i, f, score_maps) for i in ids])  # [C, H, W]
+                class_map, map_acc = three_d_ovs_scores(closed_set(maps), gt)
+                map_all.append(class_map)
+                map_accs.append(map_acc)
+                for i, qid in enumerate(ids):
+                    detail[qid][f.key]["iou_score_map"] = float(class_map[i])
         figures = {"miou": float(np.mean(all_ious)), "accuracy": _mean(accs)}
+        if score_maps is not None:
+            figures["miou_score_map"] = float(np.mean(map_all))
+            figures["accuracy_score_map"] = _mean(map_accs)
     elif benchmark == "goi-m360":  # image -> prompt -> scene
         per_q: list[tuple[float, float, float]] = []
         for q in scene.queries:
