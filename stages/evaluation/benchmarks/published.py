@@ -183,9 +183,10 @@ PUBLISHED: dict[str, dict] = {
     },
 }
 
-#: where the LERF-OVS / LERF-Mask / 3D-OVS figures were read (goi's research index holds
-#: these public markdown files; their repositories were not identified)
-_IDX = "a public markdown copy of the table (goi research index file {})"
+#: where the LERF-OVS / LERF-Mask / 3D-OVS figures were read: third-party public documents that
+#: quote the papers' tables (found through goi's research index, their authors not identified);
+#: the papers themselves were not readable here, so check a figure in its paper before quoting it
+_IDX = "third-party public copies of the paper's table ({}), not the paper itself"
 _LANGSPLAT = "LangSplat: 3D Language Gaussian Splatting (Qin et al., CVPR 2024, arXiv 2312.16084)"
 _LANGSPLAT_V2 = (
     "LangSplatV2: High-dimensional 3D Language Gaussian Splatting with 450+ FPS "
@@ -217,7 +218,7 @@ OTHERS: dict[str, list[PublishedRow]] = {
             "LangSplat",
             _LERF_OVS_OWN,
             f"{_LANGSPLAT}, its LERF localization-accuracy and 3D semantic segmentation tables",
-            _IDX.format(60950285615) + "; per-scene mIoU also in file 61492742873; the mean "
+            _IDX.format("two agree on the per-scene mIoU") + "; the mean "
             "mIoU 51.4 in github.com/yanmin-wu/OpenGaussian/issues/14, the mean accuracy "
             "84.3% in alphaxiv.org/overview/2312.16084v2",
             _scenes(
@@ -231,8 +232,7 @@ OTHERS: dict[str, list[PublishedRow]] = {
             "lerf-ovs as LangSplatV2 reports it (LangSplat's protocol; not confirmed from "
             "its code)",
             f"{_LANGSPLAT_V2}, its LERF tables",
-            _IDX.format(60950285615) + "; the mean mIoU 59.9 also in "
-            "alphaxiv.org/overview/2507.07136v1",
+            _IDX.format("one") + "; the mean mIoU 59.9 also in alphaxiv.org/overview/2507.07136v1",
             _scenes(
                 _LERF,
                 _LOC,
@@ -254,8 +254,9 @@ OTHERS: dict[str, list[PublishedRow]] = {
             "Gaussian Grouping",
             "lerf-mask (Gaussian Grouping eval_lerf_mask.py), as the paper reports it",
             f"{_GG}, its LERF-Mask table",
-            _IDX.format(54840993527) + " and file 66672675494 (ramen mBIoU 68.7); file "
-            "60294349615 prints ramen mBIoU 68.8 and the mean 72.8 / 67.6",
+            _IDX.format(
+                "two print ramen mBIoU 68.7, a third 68.8; the mean 72.8 / 67.6 from the third"
+            ),
             _scenes(
                 ("figurines", "ramen", "teatime", "mean"),
                 ("miou", "boundary_miou"),
@@ -266,7 +267,7 @@ OTHERS: dict[str, list[PublishedRow]] = {
             "LangSplat",
             "lerf-mask as ObjectGS evaluated LangSplat (Gaussian Grouping's protocol)",
             _OBJECTGS,
-            _IDX.format(54840993527) + " and file 66672675494 (no mean printed)",
+            _IDX.format("two agree; no mean printed"),
             _scenes(
                 ("figurines", "ramen", "teatime"),
                 ("miou", "boundary_miou"),
@@ -279,7 +280,7 @@ OTHERS: dict[str, list[PublishedRow]] = {
             "LangSplat",
             "3d-ovs as LangSplat reports it (its own 3D-OVS evaluation)",
             f"{_LANGSPLAT}, its 3D-OVS table",
-            _IDX.format(61492742873) + " (bed, bench, sofa, lawn; room not printed); the "
+            _IDX.format("one: bed, bench, sofa, lawn; room not printed") + "; the "
             "mean 93.4 in alphaxiv.org/overview/2312.16084v2",
             _scenes(
                 ("bed", "bench", "sofa", "lawn", "mean"),
@@ -291,7 +292,7 @@ OTHERS: dict[str, list[PublishedRow]] = {
             "LangSplat",
             "3d-ovs as ObjectGS evaluated it (not confirmed to be 3D-OVS's renderer.py)",
             _OBJECTGS,
-            _IDX.format(54840993527),
+            _IDX.format("one"),
             _scenes(
                 ("bed", "bench", "room", "lawn", "sofa", "mean"),
                 ("miou",),
@@ -302,7 +303,7 @@ OTHERS: dict[str, list[PublishedRow]] = {
             "Gaussian Grouping",
             "3d-ovs as ObjectGS evaluated it (not confirmed to be 3D-OVS's renderer.py)",
             _OBJECTGS,
-            _IDX.format(54840993527),
+            _IDX.format("one"),
             _scenes(
                 ("bed", "bench", "room", "lawn", "sofa", "mean"),
                 ("miou",),
