@@ -215,23 +215,39 @@ class Sam:
     ) -> Grounding:
         """A detector + SAM pipeline's answer: the union of SAM's masks of `boxes` [K, 4] on the
         image embedded as `emb`, each box's logits above `threshold`."""
-        mask = np.zeros(hw, bool)
-        for box in boxes:
-            mask |= self.box_logits(emb, box, hw) > threshold
+        if not len(boxes):
+            return Grounding(np.zeros(hw, bool), boxes, scores)
+        mask: np.ndarray = np.any(self.boxes_logits(emb, boxes, hw) > threshold, axis=0)
         return Grounding(mask, boxes, scores)
 
     def box_logits(self, emb: np.ndarray, box: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
         """One box [4] (x0, y0, x1, y1, pixels of the image) -> SAM's mask logits [H, W]."""
+        return self.boxes_logits(emb, np.asarray(box)[None], hw)[0]
+
+    def boxes_logits(self, emb: np.ndarray, boxes: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+        """Boxes [K, 4] (x0, y0, x1, y1, pixels of the image) -> SAM's mask logits [K, H, W].
+
+        transformers' decoder takes the K boxes as one prompt batch (one run: the image
+        embedding is read once); segment-anything's graph takes one box a run."""
         m = self.sessions[1]
         if self.layout == "transformers":
             feed = {
                 self.dec["image_embeddings"]: emb,
-                self.dec["boxes"]: rp.sam_boxes(box[None], hw, self.size),
+                self.dec["boxes"]: rp.sam_boxes(np.asarray(boxes), hw, self.size),  # [1, K, 4]
             }
-            low = m.run([self.dec["masks"]], feed)[0]  # [1, 1, 1, s, s] mask logits
-            return rp.sam_mask_logits(low[0, 0, 0], hw, self.size)
+            low = m.run([self.dec["masks"]], feed)[0]  # [1, K, 1, s, s] mask logits
+            if low.ndim != 5 or low.shape[:3] != (1, len(boxes), 1):
+                raise GoiError(
+                    f"{self.root / self.dec['file']}: output '{self.dec['masks']}' is "
+                    f"{list(low.shape)}, expected [1, {len(boxes)}, 1, s, s]"
+                )
+            return rp.sam_mask_logits(low[0, :, 0], hw, self.size)
+        return np.stack([self._sa_box_logits(emb, box, hw) for box in boxes])
+
+    def _sa_box_logits(self, emb: np.ndarray, box: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
         # segment-anything: the box's corners as two points labelled 2 and 3, no padding point
         # (SamPredictor with a box); no mask prompt; the graph resizes to orig_im_size itself.
+        m = self.sessions[1]
         coords = rp.sam_boxes(box[None], hw, self.size).reshape(1, 2, 2)
         e = int(emb.shape[-1])
         feed = {

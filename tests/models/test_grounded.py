@@ -188,3 +188,16 @@ def test_a_checkpoint_without_tokenizer_json_gets_one_built(tmp_path):
     (tmp_path / "vocab.txt").unlink()
     with pytest.raises(GoiError, match="tokenizer.json: missing, and the checkpoint has no"):
         tokenizer_json(tmp_path)
+
+
+def test_sams_boxes_are_one_decoder_batch_equal_to_one_box_a_run(res_bundles):
+    """The K boxes of a view go through SAM's decoder as one prompt batch: each box's logits
+    are those of its own run (no box sees another)."""
+    g = load_bundle(res_bundles["grounded"])._grounded
+    rgb = np.random.default_rng(3).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    emb = g.sam.embed(rgb)
+    boxes = np.asarray([[4, 6, 60, 80], [30, 10, 120, 90], [0, 0, 128, 96]], np.float32)
+    batch = g.sam.boxes_logits(emb, boxes, (96, 128))
+    one = np.stack([g.sam.box_logits(emb, b, (96, 128)) for b in boxes])
+    assert batch.shape == (3, 96, 128)
+    assert np.abs(batch - one).max() <= 1e-4 * max(1.0, float(np.abs(one).max()))
