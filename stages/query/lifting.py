@@ -306,10 +306,13 @@ def guard(
     palm whose fronds erosion erased: 990 against 4,044) the vote has lost what the masks
     only graze, not found a smaller object, and the field's answer joins it where the masks
     see it and do not reject it outright (S1 >= REJECTED_SHARE E): a field that selects a
-    whole support must not bring in what no mask claims."""
+    whole support must not bring in what no mask claims. The field's Gaussians that no mask
+    sees (E < min_evidence: a thin frond's footprint is under a pixel in most views) join too:
+    a collapsed vote has no evidence against them, and its entry-level decision for them is
+    the collapsed one (the palm on res/: 3D IoU 0.429 -> 0.667)."""
     n_field = int(field_sel.sum())
     if n_field == 0 or sel.sum() >= COLLAPSE_RATIO * n_field:
         return sel, False
     E = S1 + S0
-    kept = (E >= p.min_evidence) & (S1 >= REJECTED_SHARE * E)
+    kept = (E < p.min_evidence) | (S1 >= REJECTED_SHARE * E)
     return sel | (field_sel & kept), True

@@ -355,11 +355,13 @@ def test_guard_fuses_a_collapsed_vote_with_the_field():
     S1[:2225] = 1.0  # the masks put the field's answer a little in (eroded), not a majority
     S0[2000:2225] = 0.0
     S1[2225:2300] = 0.1  # seen, rejected outright: stays out
-    field_sel = np.arange(n) < 2300
+    S1[2300:2400], S0[2300:2400] = 0.0, 0.5  # the field's, under a pixel of evidence: joins
+    S1[2400:2500], S0[2400:2500] = 0.0, 0.5  # under a pixel, not the field's: stays out
+    field_sel = np.arange(n) < 2400
     sel = np.zeros(n, bool)
     sel[:19] = True  # #26: 19 Gaussians against the field's 2,225
     fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
-    assert fell_back and fused.sum() == 2225 and fused[:2225].all()
+    assert fell_back and fused.sum() == 2325 and fused[:2225].all() and fused[2300:2400].all()
     # a lifted answer that is merely smaller than the field's (over half of it) is left alone
     sel[:1200] = True
     same, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
