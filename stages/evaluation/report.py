@@ -142,6 +142,15 @@ def eval_page(
             f"<td>{fmt(r.get('miou_3d_visible'))}</td></tr>"
         )
     body.append(floor_table(report["variants"]))
+    exact = report.get("exact_answer")
+    if exact is not None and exact["prompts"]:
+        cells = "".join(f"<td>{esc(k)}: {fmt(e['iou'])}</td>" for k, e in exact["prompts"].items())
+        body.append(
+            "</table><h2>The exact 3D answer</h2><p class='key'>Each prompt's target Gaussians "
+            "rendered as a selection is: the 2D IoU a perfect 3D answer gets (thin parts the "
+            f"Gaussians draw wider or narrower than the pixels cost it). Mean {fmt(exact['miou'])}"
+            f".</p><table><tr>{cells}</tr>"
+        )
     lifted = report.get("lifted")
     if lifted is not None:
         body.append(

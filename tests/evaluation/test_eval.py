@@ -67,6 +67,11 @@ def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
     page = (tmp_path / "r.html").read_text()
     assert "&lt;b&gt;object 1&lt;/b&gt;" in page and "<b>object" not in page
     assert "evidence threshold" in page
+    # the exact 3D answer (the targets rendered as a selection) nearly reproduces the masks,
+    # which are the rendered argmax of the same one-hot objects
+    exact = r["exact_answer"]
+    assert set(exact["prompts"]) == {"p1", "p2"} and exact["miou"] >= 0.9
+    assert "The exact 3D answer" in page
     assert main(argv) == 2  # the report exists: --force is needed
     # a second eval with other RES masks and the same --work refits nothing
     work = tmp_path / "r.work"
