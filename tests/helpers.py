@@ -115,3 +115,23 @@ def build_or_load(path, scene, cameras, k=0, sizes=None, force=False):  # noqa: 
     cache = BlendCache.load(ensure_cache(path, scene, cameras, k, sizes, force=force))
     cache.views = {c.name: cache.views[c.name] for c in cameras}
     return cache
+
+
+def write_true_res(s: dict, root: Path, objects: range | tuple[int, ...]) -> None:
+    """`root`/text.json (each object's feature as its text embedding) and `root`/res/o<k>/: each
+    object's true mask on the training views of `semantic_scene` s, as RES mask files."""
+    import cv2
+
+    from stages.render.rasterizer import Rasterizer
+    from stages.scene.gaussians import load_ply
+
+    emb = {f"object {k}": s["objects"][k].tolist() for k in range(len(s["objects"]))}
+    (root / "text.json").write_text(json.dumps(emb))
+    rast = Rasterizer.from_gaussians(load_ply(s["scene"] / "point_cloud.ply"))
+    for k in objects:
+        d = root / "res" / f"o{k}"
+        d.mkdir(parents=True)
+        for name in s["train"]:
+            share = rast.render_features(s["cameras"][name], s["onehot"]).image
+            m = (share.argmax(2) == k) & (share.sum(2) > 0.5)
+            cv2.imwrite(str(d / f"{name}.png"), m.astype(np.uint8) * 255)

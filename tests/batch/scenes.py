@@ -3,33 +3,17 @@ RES masks (each object's true mask on the training views), and a batch configura
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import cv2
-import numpy as np
-
-from tests.helpers import semantic_scene
+from tests.helpers import semantic_scene, write_true_res
 
 #: Two prompts per scene: two of the synthetic room's objects.
 PROMPTS = ("object 1", "object 2")
 
 
 def tiny_scene(root: Path, seed: int) -> dict:
-    from stages.render.rasterizer import Rasterizer
-    from stages.scene.gaussians import load_ply
-
     s = semantic_scene(root, n=400, n_views=4, size=(32, 24), stride=4, dim=16, seed=seed)
-    emb = {f"object {k}": s["objects"][k].tolist() for k in range(len(s["objects"]))}
-    (root / "text.json").write_text(json.dumps(emb))
-    rast = Rasterizer.from_gaussians(load_ply(s["scene"] / "point_cloud.ply"))
-    for k in (1, 2):
-        d = root / "res" / f"o{k}"
-        d.mkdir(parents=True)
-        for name in s["train"]:
-            share = rast.render_features(s["cameras"][name], s["onehot"]).image
-            m = (share.argmax(2) == k) & (share.sum(2) > 0.5)
-            cv2.imwrite(str(d / f"{name}.png"), m.astype(np.uint8) * 255)
+    write_true_res(s, root, (1, 2))
     return s
 
 

@@ -12,6 +12,7 @@ from stages.query.selection import load_selection
 from stages.render.rasterizer import Rasterizer
 from stages.scene.gaussians import load_ply
 from stages.semantics.field import load_field
+from tests.helpers import write_true_res
 
 OBJ = 2  # a box standing on the floor
 
@@ -21,16 +22,7 @@ def queried(fitted, tmp_path_factory):
     """Text embeddings = the objects' features; RES masks = each object's true train masks."""
     s, run = fitted
     root = tmp_path_factory.mktemp("query")
-    emb = {f"object {k}": s["objects"][k].tolist() for k in range(len(s["objects"]))}
-    (root / "text.json").write_text(json.dumps(emb))
-    rast = Rasterizer.from_gaussians(load_ply(s["scene"] / "point_cloud.ply"))
-    for k in range(len(s["objects"])):
-        d = root / "res" / f"o{k}"
-        d.mkdir(parents=True)
-        for name in s["train"]:
-            share = rast.render_features(s["cameras"][name], s["onehot"]).image
-            m = (share.argmax(2) == k) & (share.sum(2) > 0.5)
-            cv2.imwrite(str(d / f"{name}.png"), m.astype(np.uint8) * 255)
+    write_true_res(s, root, range(len(s["objects"])))
     return s, run, root
 
 
