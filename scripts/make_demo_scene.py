@@ -53,7 +53,8 @@ def main() -> int:
     ]
     (OUT / "cameras.json").write_text(json.dumps(cams, indent=1) + "\n")
     (OUT / "split.json").write_text(json.dumps({"train": train, "test": TEST}) + "\n")
-    for v in TEST:
+    # the training photos too: `goi index-res` runs a bundle's RES image side on them
+    for v in train + TEST:
         shutil.copy(room / "images" / f"{v}.png", OUT / "images" / f"{v}.png")
     shutil.copy(room / "gaussian_ids.npy", OUT / "gaussian_ids.npy")
     emb = json.loads((room / "text_embeddings.json").read_text())

@@ -1,7 +1,10 @@
 """The demo end to end, with fewer field iterations, on the scene shipped with goi."""
 
+from pathlib import Path
+
 import pytest
 
+import goi_cli
 from goi_cli.main import main
 from stages.evaluation.demo import DEMO_SCENE, DemoParams, DemoRun, run_demo
 from stages.query.prompts import safe_name
@@ -47,3 +50,26 @@ def test_demo_with_a_res_bundle_shows_the_res_masks(tmp_path, res_bundles):
         assert f"index_files/{name}" in page and (tmp_path / "index_files" / name).is_file()
     assert main(["demo", "--out", str(tmp_path / "x"), "--bundle", str(tmp_path)]) == 2
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
+def test_demo_from_a_res_index_runs_only_the_prompt_side(tmp_path, res_bundles):
+    """goi index-res on the demo scene, then goi demo --res-index: the masks the fits used come
+    from the index (the scene's photos), written and shown as with --bundle alone; an index of
+    another bundle is refused before any work."""
+    scene = Path(goi_cli.__file__).parent / "demo_scene"
+    index = tmp_path / "index.h5"
+    argv = ["index-res", "--scene", str(scene), "--bundle", str(res_bundles["grounded"]),
+            "--out", str(index)]  # fmt: skip
+    assert main(argv) == 0
+    out = tmp_path / "demo"
+    argv = ["demo", "--out", str(out), "--iterations", "20", "--prompts", "p08",
+            "--bundle", str(res_bundles["grounded"]), "--res-index", str(index)]  # fmt: skip
+    assert main(argv) == 0
+    page = (out / "index.html").read_text()
+    res = next((out / "queries").glob("*/res"))
+    views = sorted(p.stem for p in res.glob("*.png"))
+    assert views and "<b>RES</b>" in page
+    assert main([*argv[:-4], "--bundle", str(res_bundles["clipseg"]), "--res-index",
+                 str(index), "--out", str(tmp_path / "other")]) == 2  # fmt: skip
+    assert not (tmp_path / "other").exists()
