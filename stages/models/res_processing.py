@@ -291,6 +291,40 @@ def sam_mask_logits(low_res: np.ndarray, image_hw: tuple[int, int], size: int) -
 
 
 # -------------------------------------------------------------------------------------------
+# SAM 2 (Sam2ImageProcessor, Sam2Processor's box coordinates, post_process_masks)
+# -------------------------------------------------------------------------------------------
+def sam2_inputs(
+    rgb: np.ndarray,
+    size: int,
+    mean: tuple[float, ...] = IMAGENET_MEAN,
+    std: tuple[float, ...] = IMAGENET_STD,
+) -> np.ndarray:
+    """-> pixel_values [1, 3, size, size]: unlike SAM, SAM 2 squashes the image to the square
+    (no aspect ratio kept, no padding), bilinear, then normalises.
+
+    Sam2ImageProcessor is a torchvision backend: it resizes the uint8 image with
+    `F.interpolate(mode="bilinear", antialias=True)`, whose uint8 path is Pillow's fixed-point
+    filter; `pil_resize` is Pillow's, equal to it within one grey level
+    (tests/models/test_sam2.py)."""
+    return square_inputs(rgb, (size, size), mean, std)
+
+
+def sam2_boxes(boxes_xyxy: np.ndarray, image_hw: tuple[int, int], size: int) -> np.ndarray:
+    """Boxes [B, 4] in pixels of the original image -> [1, B, 4] float32 in the size x size
+    frame (Sam2Processor: x scaled by size / W, y by size / H, each axis on its own)."""
+    h, w = image_hw
+    b = np.asarray(boxes_xyxy, np.float64).reshape(-1, 4)
+    b = b * np.asarray([size / w, size / h, size / w, size / h])
+    return b.astype(np.float32)[None]
+
+
+def sam2_mask_logits(low_res: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
+    """post_process_masks without the threshold: [..., s, s] -> bilinear (half-pixel) straight
+    to the image [..., H, W] (nothing to crop: the input was not padded)."""
+    return bilinear_resize_f32(np.asarray(low_res, np.float32), image_hw)
+
+
+# -------------------------------------------------------------------------------------------
 # CLIPSeg (ViTImageProcessor as its checkpoints configure it) and single-model RES
 # -------------------------------------------------------------------------------------------
 def square_inputs(
@@ -309,20 +343,89 @@ def scores_to_mask(scores: np.ndarray, image_hw: tuple[int, int], threshold: flo
 # -------------------------------------------------------------------------------------------
 # OWLv2 (the split detector: image side once, a dot product per prompt)
 # -------------------------------------------------------------------------------------------
+def _mirror(j: np.ndarray, n: int) -> np.ndarray:
+    """scipy.ndimage's mode "mirror" (numpy's pad "reflect"): ... c b | a b c | b a ..."""
+    if n == 1:
+        return np.zeros_like(j)
+    period = 2 * (n - 1)
+    j = np.mod(j, period)
+    return np.where(j < n, j, period - j)
+
+
+def _owl_axis(n_in: int, n_out: int) -> np.ndarray:
+    """[n_out, n_in] float64: one axis of Owlv2ImageProcessor's resize as a matrix. A Gaussian
+    anti-alias with sigma (n_in / n_out - 1) / 2 when shrinking (scipy's gaussian_filter,
+    truncate 4, mode mirror), then linear interpolation at half-pixel centres (ndi.zoom with
+    order 1, grid_mode True, mode mirror)."""
+    sigma = max(0.0, (n_in / n_out - 1) / 2)
+    g = np.eye(n_in)
+    if sigma > 1e-15:  # scipy skips an axis whose sigma is 0
+        r = int(4.0 * sigma + 0.5)
+        k = np.arange(-r, r + 1)
+        w = np.exp(-0.5 * (k / sigma) ** 2)
+        w /= w.sum()
+        g = np.zeros((n_in, n_in))
+        rows = np.arange(n_in)[:, None]
+        np.add.at(g, (np.broadcast_to(rows, (n_in, k.size)), _mirror(rows + k, n_in)), w)
+    src = (np.arange(n_out) + 0.5) * (n_in / n_out) - 0.5
+    i0 = np.floor(src).astype(np.int64)
+    t = src - i0
+    z = np.zeros((n_out, n_in))
+    rows = np.arange(n_out)
+    np.add.at(z, (rows, _mirror(i0, n_in)), 1 - t)
+    np.add.at(z, (rows, _mirror(i0 + 1, n_in)), t)
+    out: np.ndarray = z @ g
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _owl_taps(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray]:
+    return _taps(_owl_axis(n_in, n_out))
+
+
+def owl_inputs_reference(
+    rgb: np.ndarray, size: int, mean: tuple[float, ...], std: tuple[float, ...]
+) -> np.ndarray:
+    """Owlv2ImageProcessor's pixels, the plain way: the 0..1 image padded to a square with grey
+    0.5 at the bottom and right, resized with dense per-axis matrices (`_owl_axis`), clipped
+    to the padded image's range, normalised. `owl_inputs` is the fast form held equal to it."""
+    x = (rgb.astype(np.float64) * (1 / 255)).astype(np.float32)
+    h, w = x.shape[:2]
+    side = max(h, w)
+    pad = np.full((side, side, 3), 0.5, np.float32)
+    pad[:h, :w] = x
+    m = _owl_axis(side, size)
+    y = np.einsum("oh,hwc->owc", m, pad.astype(np.float64))
+    y = np.einsum("pw,owc->opc", m, y).astype(np.float32)
+    y = np.clip(y, pad.min(), pad.max())
+    out = (y - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    return np.ascontiguousarray(out.transpose(2, 0, 1))[None]
+
+
 def owl_inputs(
     rgb: np.ndarray, size: int, mean: tuple[float, ...], std: tuple[float, ...]
 ) -> np.ndarray:
-    """-> pixel_values [1, 3, size, size]: the image on a square canvas of its longest side,
-    padded at the bottom and right with grey 0.5 (as Owlv2ImageProcessor pads), resized to
-    `size`. goi resizes the image part with Pillow's bilinear filter and fills the padding with
-    the normalised grey; Owlv2ImageProcessor resizes the padded square with a Gaussian
-    anti-alias and a spline (scipy), so pixels differ slightly from it (not bit-exact)."""
-    h, w = sam_shape(rgb.shape[0], rgb.shape[1], size)
-    grey = (np.float32(0.5) - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
-    out = np.empty((1, 3, size, size), np.float32)
-    out[0] = grey[:, None, None]
-    out[0, :, :h, :w] = normalize(pil_resize(rgb, (h, w)), mean, std)
-    return out
+    """-> pixel_values [1, 3, size, size] as OWLv2 prepares an image: the 0..1 image padded to
+    a square of its longest side with grey 0.5 at the bottom and right (the original OWLv2's
+    and transformers 4.x's Owlv2ImageProcessor; transformers 5 pads with 0), resized as
+    Owlv2ImageProcessor does (scipy: a Gaussian anti-alias when shrinking, then linear
+    interpolation at half-pixel centres, mirrored at the edges, in float, no rounding to 8
+    bits), clipped to the padded image's range, normalised.
+
+    Each axis's resize is a fixed matrix with a few taps a row (cached per size), applied by
+    gathers; equal to `owl_inputs_reference` within 5e-6 and to the processor within 1e-5
+    (tests/models/test_res_processing.py)."""
+    x = (rgb.astype(np.float64) * (1 / 255)).astype(np.float32)
+    h, w = x.shape[:2]
+    side = max(h, w)
+    pad = np.full((side, side, 3), 0.5, np.float32)
+    pad[:h, :w] = x
+    idx, wt = _owl_taps(side, size)
+    y = np.einsum("othc,ot->ohc", pad[idx], wt)  # [size, side, 3]
+    y = np.einsum("optc,pt->opc", y[:, idx], wt)  # [size, size, 3]
+    y = np.clip(y, pad.min(), pad.max())
+    out = (y - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    return np.ascontiguousarray(out.transpose(2, 0, 1))[None]
 
 
 def owl_logits(

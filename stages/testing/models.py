@@ -1,5 +1,6 @@
-"""Randomly initialised RES checkpoints for tests and benchmarks: Grounding DINO, SAM and
-CLIPSeg, tiny (seconds to export) or at the real checkpoints' configurations (the real cost).
+"""Randomly initialised RES checkpoints for tests and benchmarks: Grounding DINO, OWLv2, SAM,
+SAM 2 and CLIPSeg, tiny (seconds to export) or at the real checkpoints' configurations (the
+real cost).
 
 Checkpoints are written as Hugging Face directories (config.json, model.safetensors,
 tokenizer.json, preprocessor_config.json), so they go through `goi export-model` exactly as a
@@ -153,6 +154,48 @@ def sam(real: bool = False, image_size: int = 128, seed: int = 0) -> Any:
         cfg = SamConfig(vision_config=vision, prompt_encoder_config=prompt, mask_decoder_config=dec)
     torch.manual_seed(seed)
     model = SamModel._from_config(cfg, attn_implementation="eager").eval()
+    return realistic_init(model, seed, skip=("positional_embedding",))
+
+
+def sam2(real: bool = False, image_size: int = 128, seed: int = 0) -> Any:
+    """Sam2Model: tiny (at `image_size`, a multiple of 32), or facebook/sam2.1-hiera-tiny's
+    config (transformers' default Sam2Config: Hiera with 96 channels, blocks [1, 2, 7, 2],
+    at 1024)."""
+    import torch
+    from transformers import Sam2Config, Sam2Model
+    from transformers.models.sam2.configuration_sam2 import (
+        Sam2HieraDetConfig,
+        Sam2MaskDecoderConfig,
+        Sam2PromptEncoderConfig,
+        Sam2VisionConfig,
+    )
+
+    if real:
+        cfg = Sam2Config()
+    else:
+        s = image_size
+        hiera = Sam2HieraDetConfig(
+            hidden_size=16, image_size=[s, s], blocks_per_stage=[1, 1, 2, 1],
+            embed_dim_per_stage=[16, 32, 64, 128], num_attention_heads_per_stage=[1, 1, 2, 2],
+            window_size_per_stage=[4, 4, 4, 2], global_attention_blocks=[3],
+            window_positional_embedding_background_size=[2, 2],
+        )  # fmt: skip
+        vision = Sam2VisionConfig(
+            backbone_config=hiera, backbone_channel_list=[128, 64, 32, 16],
+            backbone_feature_sizes=[[s // 4] * 2, [s // 8] * 2, [s // 16] * 2],
+            fpn_hidden_size=32,
+        )  # fmt: skip
+        prompt = Sam2PromptEncoderConfig(
+            hidden_size=32, image_size=s, patch_size=16, mask_input_channels=4
+        )
+        dec = Sam2MaskDecoderConfig(
+            hidden_size=32, mlp_dim=64, num_attention_heads=2, iou_head_hidden_dim=32
+        )
+        cfg = Sam2Config(
+            vision_config=vision, prompt_encoder_config=prompt, mask_decoder_config=dec
+        )
+    torch.manual_seed(seed)
+    model = Sam2Model._from_config(cfg, attn_implementation="eager").eval()
     return realistic_init(model, seed, skip=("positional_embedding",))
 
 

@@ -85,7 +85,7 @@ def test_owl_sam_split_equals_ground(owl_bundle):
         side = bundle.res_image_side(rgb)
         assert {k: (v.shape, v.dtype.name) for k, v in side.items()} == spec
         exact = {**bundle._owl_sam._owl(rgb),
-                 "sam_embedding": bundle._owl_sam.sam.embed(rgb)[0]}  # fmt: skip
+                 **{k: v[0] for k, v in bundle._owl_sam.sam.embed(rgb).items()}}  # fmt: skip
         for text in ("a red chair", "the green sofa", "the lamp"):
             prompt = bundle.res_prompt(text)
             want = bundle.ground(rgb, text)

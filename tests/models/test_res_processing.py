@@ -145,3 +145,22 @@ def test_sam_mask_logits_equal_the_plain_two_step_reference(h, w):
     got = rp.sam_mask_logits(low, (h, w), 1024)
     assert got.shape == want.shape == (3, h, w) and got.dtype == np.float32
     assert np.abs(got - want).max() <= 1e-5  # measured 2.9e-6 at magnitude 4
+
+
+@pytest.mark.parametrize("h,w", [(48, 64), (70, 40), (300, 400), (1200, 900), (961, 1000)])
+def test_owl_inputs_equal_the_processor(h, w):
+    """Owlv2ImageProcessor's own resize (scipy: Gaussian anti-alias when shrinking, linear
+    zoom) on the image padded with grey 0.5, as the original OWLv2 and transformers 4.x pad
+    (transformers 5 pads with 0; goi keeps the original's grey)."""
+    pytest.importorskip("scipy")
+    proc = transformers.Owlv2ImageProcessorPil()
+    rgb = np.random.default_rng(h + w).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    x = proc.rescale(rgb.transpose(2, 0, 1), 1 / 255)
+    x = proc.pad(x, constant_value=0.5)
+    x = proc.resize(x, {"height": 96, "width": 96})
+    want = proc.normalize(x, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
+    got = rp.owl_inputs(rgb, 96, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
+    assert got.shape == (1, 3, 96, 96) and got.dtype == np.float32
+    assert np.abs(got[0] - want).max() <= 1e-5
+    ref = rp.owl_inputs_reference(rgb, 96, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
+    assert np.abs(got - ref).max() <= 5e-6

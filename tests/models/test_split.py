@@ -28,7 +28,7 @@ def test_grounded_split_equals_ground(res_bundles):
     for rgb in _images():
         side = bundle.res_image_side(rgb)
         assert {k: (v.shape, v.dtype.name) for k, v in side.items()} == spec
-        exact = {"sam_embedding": bundle._grounded.sam.embed(rgb)[0]}  # float32, not stored
+        exact = {k: v[0] for k, v in bundle._grounded.sam.embed(rgb).items()}  # float32
         for text in PROMPTS:
             prompt = bundle.res_prompt(text)
             want = bundle.ground(rgb, text)

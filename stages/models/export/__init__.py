@@ -8,6 +8,8 @@ Each SOURCE is a checkpoint directory, recognised by its config.json (safetensor
   (`clipseg`);
 - an OWLv2 and a SAM checkpoint, together: OWLv2 + SAM, split into an image side and a prompt
   side, `owl_image.onnx`, `owl_text.onnx`, `sam_encoder.onnx`, `sam_decoder.onnx` (`owlv2`);
+  a SAM 2 checkpoint (Sam2Model, e.g. SAM 2.1 hiera-tiny) may stand for SAM wherever SAM goes
+  (`sam2`);
 - a Grounding DINO and a SAM checkpoint, together: a Grounded-SAM RES, `detector.onnx`,
   `sam_encoder.onnx` and `sam_decoder.onnx` (`grounding_dino`, `sam`). In place of the SAM
   checkpoint, a directory holding a SAM already in segment-anything's ONNX layout (no
@@ -50,6 +52,7 @@ KINDS = {
     "grounding-dino": "detector",
     "owlv2": "owl",
     "sam": "sam",
+    "sam2": "sam2",
     "clipseg": "clipseg",
 }
 #: kind -> the transformers class it is loaded with, and its name in messages.
@@ -59,6 +62,7 @@ CLASSES = {
     "detector": ("GroundingDinoForObjectDetection", "Grounding DINO"),
     "owl": ("Owlv2ForObjectDetection", "OWLv2"),
     "sam": ("SamModel", "SAM"),
+    "sam2": ("Sam2Model", "SAM 2"),
     "clipseg": ("CLIPSegForImageSegmentation", "CLIPSeg"),
 }
 
@@ -77,7 +81,8 @@ class ModelExportParams:
     """Grounding DINO only: width of the detector's input canvas, fixed at export."""
     sam_size: Annotated[int, Range(ge=0, le=2048)] = 0
     """SAM only: side of the encoder's square input (a multiple of 16). 0: the checkpoint's own
-    (1024). Smaller resamples the position embeddings: faster, but SAM was not trained so."""
+    (1024). Smaller resamples the position embeddings: faster, but SAM was not trained so.
+    SAM 2's input is fixed (its checkpoint's size)."""
     box_threshold: Annotated[float, FRACTION] = 0.3
     """Grounded-SAM and OWLv2 + SAM: a detected box is used when its score (Grounding DINO: its
     best token probability; OWLv2: its class probability) exceeds this (GOI's value for
@@ -114,7 +119,7 @@ class ModelExportRun:
 @dataclass
 class Source:
     path: Path
-    kind: str  # clip | sentence | detector | sam | sam-onnx | clipseg
+    kind: str  # clip | sentence | detector | owl | sam | sam2 | sam-onnx | clipseg
     config: dict
     tokenizer: str | None = None  # tokenizer.json text
     modules: list | None = None  # sentence-transformers' modules.json
@@ -160,7 +165,8 @@ def _source(path: Path, opts: ModelExportParams) -> Source:
     else:
         raise GoiError(
             f"{src / 'config.json'}: model_type {model_type!r} is not one goi exports: CLIP, a "
-            "sentence-transformers model (modules.json), Grounding DINO, OWLv2, SAM or CLIPSeg"
+            "sentence-transformers model (modules.json), Grounding DINO, OWLv2, SAM, SAM 2 or "
+            "CLIPSeg"
         )
     has_weights(src)
     s = Source(src, kind, cfg, modules=modules)
@@ -168,7 +174,15 @@ def _source(path: Path, opts: ModelExportParams) -> Source:
         patch = int((cfg.get("vision_config") or {}).get("patch_size", 16))
         if opts.sam_size % patch:
             raise GoiError(f"--sam-size: {opts.sam_size} is not a multiple of {patch}")
-    if kind != "sam":
+    if kind == "sam2" and opts.sam_size:
+        from stages.models.export.sam2 import input_size
+
+        if opts.sam_size != input_size(cfg):
+            raise GoiError(
+                f"--sam-size: {src} is a SAM 2 checkpoint, whose input is fixed at "
+                f"{input_size(cfg)}; leave --sam-size out"
+            )
+    if kind not in ("sam", "sam2"):
         s.tokenizer = tokenizer_json(src)
     return s
 
@@ -177,7 +191,9 @@ def _plan(sources: list[Source]) -> dict[str, Source]:
     """The sources by role; at most one encoder and one RES, and a detector goes with SAM."""
     by_kind: dict[str, Source] = {}
     for s in sources:
-        role = {"clip": "encoder", "sentence": "encoder", "sam-onnx": "sam"}.get(s.kind, s.kind)
+        role = {"clip": "encoder", "sentence": "encoder", "sam-onnx": "sam", "sam2": "sam"}.get(
+            s.kind, s.kind
+        )
         if role in by_kind:
             raise GoiError(
                 f"SOURCE: {by_kind[role].path} and {s.path} are both {role} checkpoints; a "
@@ -281,6 +297,10 @@ def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report:
 
             enc_spec, dec_spec = import_sam_onnx(s.path, tmp)
             sam_checks: dict = {}
+        elif s.kind == "sam2":
+            from stages.models.export.sam2 import export_sam2
+
+            enc_spec, dec_spec, sam_checks = export_sam2(s.take(), s.path, tmp, opts.opset)
         else:
             enc_spec, dec_spec, sam_checks = export_sam(
                 s.take(), s.path, tmp, opts.sam_size, opts.opset
@@ -322,7 +342,7 @@ def export_model(
         tmp = Path(t)
         parts = _export(plan, tmp, opts, report)
         name = "+".join(s.path.resolve().name for s in checked)
-        manifest = {"schema": "goi.bundle", "schema_version": "1.2", "name": name, **parts}
+        manifest = {"schema": "goi.bundle", "schema_version": "1.3", "name": name, **parts}
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
         (tmp / MARKER).write_text(f"written by goi export-model (goi {__version__})\n")
         bundle = load_bundle(tmp)  # what we wrote must pass our own reader

@@ -1,0 +1,131 @@
+"""A SAM 2 checkpoint (transformers Sam2Model, e.g. facebook/sam2.1-hiera-tiny) ->
+sam_encoder.onnx + sam_decoder.onnx, split like SAM's (layout `sam2`).
+
+sam_encoder.onnx: pixel_values [1, 3, S, S] (S = 1024; the image squashed to the square, see
+`res_processing.sam2_inputs`) -> image_embeddings [1, 256, S/16, S/16] (the no-memory embedding
+already added, as Sam2Model.get_image_embeddings does for a single image) and the two
+high-resolution maps its mask decoder adds back while upscaling, high_res_feat_s0
+[1, 32, S/4, S/4] and high_res_feat_s1 [1, 64, S/8, S/8]. Once per image: the image side.
+sam_decoder.onnx: those three maps and input_boxes [1, B, 4] (x0, y0, x1, y1 in the S x S
+frame; B dynamic) -> pred_masks [1, B, 1, S/4, S/4] mask logits and iou_scores [1, B, 1], with
+multimask_output=False: SAM 2's single-mask answer, which falls back to the most stable of its
+three other masks when the single one is unstable (`dynamic_multimask_via_stability`, as the
+checkpoint configures it). Upscaling to the image is numpy (`res_processing.sam2_mask_logits`).
+
+SAM 2's input size is fixed: its Hiera backbone's window position embeddings and the feature
+map sizes are tied to it, so --sam-size does not apply.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stages.models import res_processing as rp
+from stages.models.export.common import check, image_stats, onnx_export
+from stages.models.export.grounding_dino import check_image
+
+#: The encoder's outputs, the embedding first, then the high-resolution maps, finer first.
+ENCODER_OUTPUTS = ("image_embeddings", "high_res_feat_s0", "high_res_feat_s1")
+
+
+def input_size(config: dict) -> int:
+    """The square input side S of a Sam2Model config.json."""
+    bb = (config.get("vision_config") or {}).get("backbone_config") or {}
+    size = bb.get("image_size", 1024)
+    return int(size[0] if isinstance(size, list) else size)
+
+
+def modules(model: Any) -> tuple[Any, Any]:
+    import torch
+
+    class Encoder(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(self, pixel_values: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            s0, s1, emb = self.model.get_image_embeddings(pixel_values)
+            return emb, s0, s1
+
+    class Decoder(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(
+            self,
+            image_embeddings: torch.Tensor,
+            high_res_feat_s0: torch.Tensor,
+            high_res_feat_s1: torch.Tensor,
+            input_boxes: torch.Tensor,
+        ) -> tuple[torch.Tensor, torch.Tensor]:
+            out = self.model(
+                image_embeddings=[high_res_feat_s0, high_res_feat_s1, image_embeddings],
+                input_boxes=input_boxes,
+                multimask_output=False,
+            )
+            return out.pred_masks, out.iou_scores
+
+    return Encoder().eval(), Decoder().eval()
+
+
+def export_sam2(model: Any, src: Path, tmp: Path, opset: int) -> tuple[dict, dict, dict]:
+    """sam_encoder.onnx and sam_decoder.onnx; returns their manifest entries and the checks."""
+    import torch
+
+    size = input_size(model.config.to_dict())
+    stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
+    encoder, decoder = modules(model)
+    rgb = check_image(size * 3 // 4, size, seed=1)
+    pixels = rp.sam2_inputs(rgb, size, stats["mean"], stats["std"])
+    with torch.no_grad():
+        maps = encoder(torch.from_numpy(pixels))
+    enc_path = tmp / "sam_encoder.onnx"
+    onnx_export(
+        encoder, (torch.from_numpy(pixels),), enc_path, (["pixel_values"], ENCODER_OUTPUTS), {},
+        opset,
+    )  # fmt: skip
+    checks = {
+        "sam_encoder.onnx": check(enc_path, {"pixel_values": pixels}, [m.numpy() for m in maps])
+    }
+    boxes = np.asarray([[10, 20, 300, 240], [200, 100, 620, 470]], np.float32) * (size / 1024)
+    feeds = [rp.sam2_boxes(boxes[:n], rgb.shape[:2], size) for n in (2, 1)]
+    with torch.no_grad():
+        wants = [[t.numpy() for t in decoder(*maps, torch.from_numpy(b))] for b in feeds]
+    dec_path = tmp / "sam_decoder.onnx"
+    axes = {"input_boxes": {1: "boxes"}, "pred_masks": {1: "boxes"}, "iou_scores": {1: "boxes"}}
+    onnx_export(
+        decoder,
+        (*maps, torch.from_numpy(feeds[0])),
+        dec_path,
+        ([*ENCODER_OUTPUTS, "input_boxes"], ["pred_masks", "iou_scores"]),
+        axes,
+        opset,
+    )
+    feed_maps = {name: m.numpy() for name, m in zip(ENCODER_OUTPUTS, maps, strict=True)}
+    found = [
+        check(dec_path, {**feed_maps, "input_boxes": b}, want)
+        for b, want in zip(feeds, wants, strict=True)
+    ]
+    checks["sam_decoder.onnx"] = {k: max(f[k] for f in found) for k in found[0]}
+    enc_spec = {
+        "file": "sam_encoder.onnx",
+        "input": "pixel_values",
+        "output": ENCODER_OUTPUTS[0],
+        "high_res": list(ENCODER_OUTPUTS[1:]),
+        "size": [size, size],
+        "mean": stats["mean"],
+        "std": stats["std"],
+    }
+    dec_spec = {
+        "file": "sam_decoder.onnx",
+        "layout": "sam2",
+        "image_embeddings": ENCODER_OUTPUTS[0],
+        "high_res": list(ENCODER_OUTPUTS[1:]),
+        "boxes": "input_boxes",
+        "masks": "pred_masks",
+    }
+    return enc_spec, dec_spec, checks
