@@ -161,6 +161,39 @@ def test_a_grounded_bundle_takes_sam2_too(res_checkpoints, sam2_checkpoint, tmp_
     assert np.array_equal(got.mask, want.mask)
 
 
+def test_sam21s_video_checkpoints_export_as_the_image_model(
+    res_checkpoints, sam2_checkpoint, owl_sam2, tmp_path
+):
+    """facebook/sam2.1-hiera-* ship as Sam2VideoModel checkpoints (model_type sam2_video): the
+    same weights in that layout give the same bundle."""
+    image = transformers.Sam2Model.from_pretrained(str(sam2_checkpoint), use_safetensors=True)
+    cfg = image.config
+    video = transformers.Sam2VideoModel(
+        transformers.Sam2VideoConfig(
+            vision_config=cfg.vision_config.to_dict(),
+            prompt_encoder_config=cfg.prompt_encoder_config.to_dict(),
+            mask_decoder_config=cfg.mask_decoder_config.to_dict(),
+            image_size=128,
+        )
+    )
+    missing, _ = video.load_state_dict(image.state_dict(), strict=False)
+    assert all(k not in image.state_dict() for k in missing)  # only the memory modules
+    ck = M.save_checkpoint(video, tmp_path / "sam2.1-video")
+    assert json.loads((ck / "config.json").read_text())["model_type"] == "sam2_video"
+    out = tmp_path / "b"
+    argv = ["export-model", str(res_checkpoints["owlv2"]), str(ck), "--out", str(out),
+            "--box-threshold", "0.3", "--max-boxes", "3"]  # fmt: skip
+    assert main(argv) == 0
+    got, want = load_bundle(out), load_bundle(owl_sam2)
+    rgb = np.random.default_rng(2).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    found = 0
+    for text in PROMPTS:
+        a, b = got.ground(rgb, text), want.ground(rgb, text)
+        assert np.array_equal(a.boxes, b.boxes) and np.array_equal(a.mask, b.mask)
+        found += int(b.mask.sum())
+    assert found > 0
+
+
 def test_sam2_refusals(res_checkpoints, sam2_checkpoint, owl_sam2, tmp_path, capsys):
     argv = ["export-model", str(res_checkpoints["owlv2"]), str(sam2_checkpoint), "--out",
             str(tmp_path / "x"), "--sam-size", "64"]  # fmt: skip

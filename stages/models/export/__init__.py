@@ -53,6 +53,10 @@ KINDS = {
     "owlv2": "owl",
     "sam": "sam",
     "sam2": "sam2",
+    # SAM 2.1's Hugging Face checkpoints are Sam2VideoModel's (model_type sam2_video); the image
+    # model is a subset of it (vision encoder, prompt encoder, mask decoder; the memory modules
+    # are not used), so Sam2Model loads them with every weight it has
+    "sam2_video": "sam2",
     "clipseg": "clipseg",
 }
 #: kind -> the transformers class it is loaded with, and its name in messages.
