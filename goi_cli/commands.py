@@ -150,9 +150,10 @@ def inspect_cmd(files: tuple[str, ...]) -> None:
 def index_res_cmd(**kw) -> None:
     """Index the scene for prompts: run the bundle's RES image side (SAM's or SAM 2's image
     encoder, OWLv2's vision tower, CLIPSeg's visual activations) once on every training photo
-    and write it (schema goi.res_index). Then `goi query|select|render-mask|fit-hyperplane|
-    eval|demo --res-index FILE --bundle B` run only the prompt side: a new prompt costs a text
-    encoding and a small decoder per view. An interrupted run resumes from <out>.partial.
+    and write it (schema goi.res_index). Then goi query, select, render-mask, fit-hyperplane,
+    eval and demo with `--res-index FILE --bundle B` run only the prompt side: a new prompt
+    costs a text encoding and a small decoder per view. An interrupted run resumes from
+    <out>.partial.
     """
     from stages.query.res_index import build_res_index
 

@@ -43,7 +43,7 @@ def _describe_h5(f: h5py.File) -> list[str]:
     lines: list[str] = []
     for key in ("schema", "schema_version", "goi_version", "created", "command"):
         if key in f.attrs:
-            lines.append(f"  {key:14s}{f.attrs[key]}")
+            lines.append(f"  {key + ' ':14s}{f.attrs[key]}")  # schema_version fills the column
     if "inputs" in f.attrs:
         try:
             for role, digest in json.loads(f.attrs["inputs"]).items():
