@@ -16,6 +16,7 @@ other sizes: this trades mask quality, unmeasured here, for speed.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -80,9 +81,49 @@ def modules(model: Any) -> tuple[Any, Any]:
     return Encoder().eval(), Decoder().eval()
 
 
+def export_split(
+    encoder: Any,
+    decoder: Any,
+    pixels: np.ndarray,
+    image_hw: tuple[int, int],
+    to_frame: Callable[[np.ndarray, tuple[int, int], int], np.ndarray],
+    maps: tuple[str, ...],
+    tmp: Path,
+    opset: int,
+) -> dict:
+    """sam_encoder.onnx (pixel_values -> the image-side `maps`) and sam_decoder.onnx (the maps
+    and input_boxes [1, B, 4], B dynamic -> pred_masks, iou_scores), each run in onnxruntime
+    against torch on a test card (`pixels`, of an image `image_hw`) and on 2 and 1 boxes put in
+    the encoder's frame by `to_frame`; returns the checks. SAM's and SAM 2's split."""
+    import torch
+
+    size = int(pixels.shape[-1])
+    with torch.no_grad():
+        out = encoder(torch.from_numpy(pixels))
+    tensors = out if isinstance(out, tuple) else (out,)
+    enc_path = tmp / "sam_encoder.onnx"
+    onnx_export(encoder, (torch.from_numpy(pixels),), enc_path, (["pixel_values"], maps), {}, opset)
+    want = [t.numpy() for t in tensors]
+    checks = {"sam_encoder.onnx": check(enc_path, {"pixel_values": pixels}, want)}
+    boxes = np.asarray([[10, 20, 300, 240], [200, 100, 620, 470]], np.float32) * (size / 1024)
+    feeds = [to_frame(boxes[:n], image_hw, size) for n in (2, 1)]
+    with torch.no_grad():
+        wants = [[t.numpy() for t in decoder(*tensors, torch.from_numpy(b))] for b in feeds]
+    dec_path = tmp / "sam_decoder.onnx"
+    axes = {"input_boxes": {1: "boxes"}, "pred_masks": {1: "boxes"}, "iou_scores": {1: "boxes"}}
+    names = ([*maps, "input_boxes"], ["pred_masks", "iou_scores"])
+    onnx_export(decoder, (*tensors, torch.from_numpy(feeds[0])), dec_path, names, axes, opset)
+    feed_maps = {name: t.numpy() for name, t in zip(maps, tensors, strict=True)}
+    found = [
+        check(dec_path, {**feed_maps, "input_boxes": b}, w)
+        for b, w in zip(feeds, wants, strict=True)
+    ]
+    checks["sam_decoder.onnx"] = {k: max(f[k] for f in found) for k in found[0]}
+    return checks
+
+
 def export_sam(model: Any, src: Path, tmp: Path, size: int, opset: int) -> tuple[dict, dict, dict]:
     """sam_encoder.onnx and sam_decoder.onnx; returns their manifest entries and the checks."""
-    import torch
 
     native = int(model.config.vision_config.image_size)
     size = size or native
@@ -92,37 +133,9 @@ def export_sam(model: Any, src: Path, tmp: Path, size: int, opset: int) -> tuple
     encoder, decoder = modules(model)
     rgb = check_image(size * 3 // 4, size, seed=1)
     pixels = rp.sam_inputs(rgb, size, stats["mean"], stats["std"])
-    with torch.no_grad():
-        emb = encoder(torch.from_numpy(pixels))
-    enc_path = tmp / "sam_encoder.onnx"
-    onnx_export(
-        encoder,
-        (torch.from_numpy(pixels),),
-        enc_path,
-        (["pixel_values"], ["image_embeddings"]),
-        {},
-        opset,
+    checks = export_split(
+        encoder, decoder, pixels, rgb.shape[:2], rp.sam_boxes, ("image_embeddings",), tmp, opset
     )
-    checks = {"sam_encoder.onnx": check(enc_path, {"pixel_values": pixels}, [emb.numpy()])}
-    boxes = np.asarray([[10, 20, 300, 240], [200, 100, 620, 470]], np.float32) * (size / 1024)
-    feeds = [rp.sam_boxes(boxes[:n], rgb.shape[:2], size) for n in (2, 1)]
-    with torch.no_grad():
-        wants = [[t.numpy() for t in decoder(emb, torch.from_numpy(b))] for b in feeds]
-    dec_path = tmp / "sam_decoder.onnx"
-    axes = {"input_boxes": {1: "boxes"}, "pred_masks": {1: "boxes"}, "iou_scores": {1: "boxes"}}
-    onnx_export(
-        decoder,
-        (emb, torch.from_numpy(feeds[0])),
-        dec_path,
-        (["image_embeddings", "input_boxes"], ["pred_masks", "iou_scores"]),
-        axes,
-        opset,
-    )
-    found = [
-        check(dec_path, {"image_embeddings": emb.numpy(), "input_boxes": b}, want)
-        for b, want in zip(feeds, wants, strict=True)
-    ]
-    checks["sam_decoder.onnx"] = {k: max(f[k] for f in found) for k in found[0]}
     enc_spec = {
         "file": "sam_encoder.onnx",
         "input": "pixel_values",

@@ -21,11 +21,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from stages.models import res_processing as rp
-from stages.models.export.common import check, image_stats, onnx_export
+from stages.models.export.common import image_stats
 from stages.models.export.grounding_dino import check_image
+from stages.models.export.sam import export_split
 
 #: The encoder's outputs, the embedding first, then the high-resolution maps, finer first.
 ENCODER_OUTPUTS = ("image_embeddings", "high_res_feat_s0", "high_res_feat_s1")
@@ -74,43 +73,14 @@ def modules(model: Any) -> tuple[Any, Any]:
 
 def export_sam2(model: Any, src: Path, tmp: Path, opset: int) -> tuple[dict, dict, dict]:
     """sam_encoder.onnx and sam_decoder.onnx; returns their manifest entries and the checks."""
-    import torch
-
     size = input_size(model.config.to_dict())
     stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
     encoder, decoder = modules(model)
     rgb = check_image(size * 3 // 4, size, seed=1)
     pixels = rp.sam2_inputs(rgb, size, stats["mean"], stats["std"])
-    with torch.no_grad():
-        maps = encoder(torch.from_numpy(pixels))
-    enc_path = tmp / "sam_encoder.onnx"
-    onnx_export(
-        encoder, (torch.from_numpy(pixels),), enc_path, (["pixel_values"], ENCODER_OUTPUTS), {},
-        opset,
-    )  # fmt: skip
-    checks = {
-        "sam_encoder.onnx": check(enc_path, {"pixel_values": pixels}, [m.numpy() for m in maps])
-    }
-    boxes = np.asarray([[10, 20, 300, 240], [200, 100, 620, 470]], np.float32) * (size / 1024)
-    feeds = [rp.sam2_boxes(boxes[:n], rgb.shape[:2], size) for n in (2, 1)]
-    with torch.no_grad():
-        wants = [[t.numpy() for t in decoder(*maps, torch.from_numpy(b))] for b in feeds]
-    dec_path = tmp / "sam_decoder.onnx"
-    axes = {"input_boxes": {1: "boxes"}, "pred_masks": {1: "boxes"}, "iou_scores": {1: "boxes"}}
-    onnx_export(
-        decoder,
-        (*maps, torch.from_numpy(feeds[0])),
-        dec_path,
-        ([*ENCODER_OUTPUTS, "input_boxes"], ["pred_masks", "iou_scores"]),
-        axes,
-        opset,
+    checks = export_split(
+        encoder, decoder, pixels, rgb.shape[:2], rp.sam2_boxes, ENCODER_OUTPUTS, tmp, opset
     )
-    feed_maps = {name: m.numpy() for name, m in zip(ENCODER_OUTPUTS, maps, strict=True)}
-    found = [
-        check(dec_path, {**feed_maps, "input_boxes": b}, want)
-        for b, want in zip(feeds, wants, strict=True)
-    ]
-    checks["sam_decoder.onnx"] = {k: max(f[k] for f in found) for k in found[0]}
     enc_spec = {
         "file": "sam_encoder.onnx",
         "input": "pixel_values",
