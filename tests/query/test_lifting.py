@@ -368,6 +368,30 @@ def test_guard_fuses_a_collapsed_vote_with_the_field():
     assert not fell_back and (same == sel).all()
 
 
+def test_guard_does_not_fuse_a_field_that_over_selects_what_the_masks_reject():
+    """A sound vote (1,400 Gaussians the masks put 90% in) under half of a field that also
+    selects a support (2,000 more, which the masks put 10% in: a dilated mask's rim): what the
+    field adds carries 0.16 of the vote's claim, and stays out. A vote that lost a thin part
+    the masks graze (500 Gaussians kept; the field adds 2,000 the masks put 25% in, 1.1 times
+    the vote's claim) is fused."""
+    from stages.query.lifting import guard
+
+    n = 4000
+    S1, S0 = np.zeros(n), np.full(n, 10.0)
+    S1[:1400], S0[:1400] = 9.0, 1.0  # the object: the vote's
+    S1[1400:3400], S0[1400:3400] = 1.0, 9.0  # the support the field also selects
+    field_sel = np.arange(n) < 3400
+    sel = np.arange(n) < 1400
+    same, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    assert not fell_back and (same == sel).all()
+    S1[500:1400], S0[500:1400] = 2.5, 7.5  # a thin part the masks graze, voted out
+    S1[1400:3400], S0[1400:3400] = 2.5, 7.5
+    field_sel = np.arange(n) < 3400
+    sel = np.arange(n) < 500
+    fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    assert fell_back and (fused == field_sel).all()
+
+
 def test_thin_parts_of_an_object_the_masks_mostly_agree_on():
     from stages.query.lifting import decide
 
