@@ -13,6 +13,7 @@ from stages.core.errors import GoiError
 from stages.models import res_processing as rp
 from stages.models.bundle import load_bundle
 from stages.models.onnx_io import session
+from tests.models.split_check import owl_split_equals_ground
 
 transformers = pytest.importorskip("transformers")
 
@@ -78,24 +79,7 @@ def test_owl_sam_split_equals_ground(owl_bundle):
         "owl_objectness": ((16,), "float32"),
         "sam_embedding": ((32, 8, 8), "float16"),
     }
-    rng = np.random.default_rng(5)
-    found = 0
-    for shape in ((96, 128, 3), (130, 90, 3)):
-        rgb = rng.integers(0, 256, shape, dtype=np.uint8)
-        side = bundle.res_image_side(rgb)
-        assert {k: (v.shape, v.dtype.name) for k, v in side.items()} == spec
-        exact = {**bundle._owl_sam._owl(rgb),
-                 **{k: v[0] for k, v in bundle._owl_sam.sam.embed(rgb).items()}}  # fmt: skip
-        for text in ("a red chair", "the green sofa", "the lamp"):
-            prompt = bundle.res_prompt(text)
-            want = bundle.ground(rgb, text)
-            got = bundle.res_from_image_side(exact, shape[:2], prompt)  # no rgb needed
-            assert np.array_equal(got.mask, want.mask)
-            assert np.array_equal(got.boxes, want.boxes)
-            half = bundle.res_from_image_side(side, shape[:2], prompt)
-            assert (half.mask != want.mask).mean() < 2e-3
-            found += len(want.boxes)
-    assert found > 0
+    owl_split_equals_ground(bundle, ("a red chair", "the green sofa", "the lamp"), 2e-3)
 
 
 def test_owl_exports_are_checked_and_bad_manifests_refused(owl_bundle, tmp_path):

@@ -20,6 +20,7 @@ from stages.core.errors import GoiError
 from stages.models import res_processing as rp
 from stages.models.bundle import load_bundle
 from stages.testing import models as M
+from tests.models.split_check import owl_split_equals_ground
 
 transformers = pytest.importorskip("transformers")
 
@@ -123,24 +124,7 @@ def test_owl_sam2_split_keeps_sam2s_maps_in_the_index(owl_sam2):
     assert spec["sam_embedding"] == ((32, 8, 8), "float16")
     assert spec["sam_high_res_0"] == ((4, 32, 32), "float16")
     assert spec["sam_high_res_1"] == ((8, 16, 16), "float16")
-    rng = np.random.default_rng(5)
-    found = 0
-    for shape in ((96, 128, 3), (130, 90, 3)):
-        rgb = rng.integers(0, 256, shape, dtype=np.uint8)
-        side = bundle.res_image_side(rgb)
-        assert {k: (v.shape, v.dtype.name) for k, v in side.items()} == spec
-        exact = {**bundle._owl_sam._owl(rgb),
-                 **{k: v[0] for k, v in bundle._owl_sam.sam.embed(rgb).items()}}  # fmt: skip
-        for text in PROMPTS:
-            prompt = bundle.res_prompt(text)
-            want = bundle.ground(rgb, text)
-            got = bundle.res_from_image_side(exact, shape[:2], prompt)
-            assert np.array_equal(got.mask, want.mask)
-            assert np.array_equal(got.boxes, want.boxes)
-            found += len(want.boxes)
-            half = bundle.res_from_image_side(side, shape[:2], prompt)  # float16, as stored
-            assert np.mean(half.mask != want.mask) <= 0.005
-    assert found > 0
+    side = owl_split_equals_ground(bundle, PROMPTS, 0.005)  # float16 maps, as stored
     del side["sam_high_res_1"]
     with pytest.raises(GoiError, match="'sam_high_res_1' is missing"):
         bundle.res_from_image_side(side, (130, 90), bundle.res_prompt("the lamp"))
