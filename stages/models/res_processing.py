@@ -106,11 +106,15 @@ def pil_resize(rgb: np.ndarray, size_hw: tuple[int, int], kind: str = "bilinear"
     return np.ascontiguousarray(out)
 
 
+def _unit(rgb: np.ndarray) -> np.ndarray:
+    """uint8 -> 0..1 float32 as transformers rescales: x * (1/255) in float64, then cast."""
+    return (rgb.astype(np.float64) * (1 / 255)).astype(np.float32)
+
+
 def normalize(rgb: np.ndarray, mean: tuple[float, ...], std: tuple[float, ...]) -> np.ndarray:
     """[H, W, 3] uint8 -> [3, H, W] float32 as transformers does it: x * (1/255) in float64,
     cast to float32, then (x - mean) / std in float32."""
-    x = (rgb.astype(np.float64) * (1 / 255)).astype(np.float32)
-    y = (x - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    y = (_unit(rgb) - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
     return np.ascontiguousarray(y.transpose(2, 0, 1))
 
 
@@ -383,23 +387,38 @@ def _owl_taps(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray]:
     return _taps(_owl_axis(n_in, n_out))
 
 
+def _owl_padded(rgb: np.ndarray) -> np.ndarray:
+    """[H, W, 3] uint8 -> the 0..1 image (float32, as the processor rescales it) on a square of
+    its longest side, padded with grey 0.5 at the bottom and right [S, S, 3]."""
+    x = _unit(rgb)
+    h, w = x.shape[:2]
+    pad = np.full((max(h, w), max(h, w), 3), 0.5, np.float32)
+    pad[:h, :w] = x
+    return pad
+
+
+def _owl_finished(
+    y: np.ndarray, pad: np.ndarray, mean: tuple[float, ...], std: tuple[float, ...]
+) -> np.ndarray:
+    """The resized square [size, size, 3] clipped to the padded image's range (skimage's
+    clip after a warp, as the processor does) and normalised -> [1, 3, size, size]."""
+    y = np.clip(y, pad.min(), pad.max())
+    out = (y - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    return np.ascontiguousarray(out.transpose(2, 0, 1))[None]
+
+
 def owl_inputs_reference(
     rgb: np.ndarray, size: int, mean: tuple[float, ...], std: tuple[float, ...]
 ) -> np.ndarray:
     """Owlv2ImageProcessor's pixels, the plain way: the 0..1 image padded to a square with grey
     0.5 at the bottom and right, resized with dense per-axis matrices (`_owl_axis`), clipped
     to the padded image's range, normalised. `owl_inputs` is the fast form held equal to it."""
-    x = (rgb.astype(np.float64) * (1 / 255)).astype(np.float32)
-    h, w = x.shape[:2]
-    side = max(h, w)
-    pad = np.full((side, side, 3), 0.5, np.float32)
-    pad[:h, :w] = x
+    pad = _owl_padded(rgb)
+    side = pad.shape[0]
     m = _owl_axis(side, size)
     y = np.einsum("oh,hwc->owc", m, pad.astype(np.float64))
     y = np.einsum("pw,owc->opc", m, y).astype(np.float32)
-    y = np.clip(y, pad.min(), pad.max())
-    out = (y - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
-    return np.ascontiguousarray(out.transpose(2, 0, 1))[None]
+    return _owl_finished(y, pad, mean, std)
 
 
 def owl_inputs(
@@ -415,17 +434,12 @@ def owl_inputs(
     Each axis's resize is a fixed matrix with a few taps a row (cached per size), applied by
     gathers; equal to `owl_inputs_reference` within 5e-6 and to the processor within 1e-5
     (tests/models/test_res_processing.py)."""
-    x = (rgb.astype(np.float64) * (1 / 255)).astype(np.float32)
-    h, w = x.shape[:2]
-    side = max(h, w)
-    pad = np.full((side, side, 3), 0.5, np.float32)
-    pad[:h, :w] = x
+    pad = _owl_padded(rgb)
+    side = pad.shape[0]
     idx, wt = _owl_taps(side, size)
     y = np.einsum("othc,ot->ohc", pad[idx], wt)  # [size, side, 3]
     y = np.einsum("optc,pt->opc", y[:, idx], wt)  # [size, size, 3]
-    y = np.clip(y, pad.min(), pad.max())
-    out = (y - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
-    return np.ascontiguousarray(out.transpose(2, 0, 1))[None]
+    return _owl_finished(y, pad, mean, std)
 
 
 def owl_logits(
