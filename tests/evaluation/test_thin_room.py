@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from stages.scene.images import read_mask
-from stages.testing.thin_room import THIN_PROMPTS, eroded_masks, extend_room
+from stages.testing.thin_room import (
+    HELD_OUT_PROMPTS,
+    THIN_PROMPTS,
+    eroded_masks,
+    extend_room,
+    main,
+)
 from tests.helpers import DEV_ROOM
 
 pytestmark = pytest.mark.skipif(not DEV_ROOM.is_dir(), reason="the dev room is absent")
@@ -37,3 +43,27 @@ def test_extended_room_adds_prompts_with_ground_truth_and_eroded_masks(tmp_path)
         m = read_mask(f)
         assert m.any() and not (m & (ids != 23)).any()
         assert m.sum() < np.sum(ids == 23)
+
+
+def test_held_out_prompts_are_the_rooms_other_furniture(tmp_path):
+    room = extend_room(DEV_ROOM, tmp_path / "room", THIN_PROMPTS + HELD_OUT_PROMPTS)
+    prompts = {p["id"]: p for p in json.loads((room / "prompts.json").read_text())}
+    own = json.loads((DEV_ROOM / "prompts.json").read_text())
+    prompted = {t for p in own for t in p["targets"]}
+    texts = json.loads((DEV_ROOM / "text_embeddings.json").read_text())
+    for pid, text, targets, _ in HELD_OUT_PROMPTS:
+        assert not prompted & set(targets)  # held out: no prompt of the room names them
+        assert text in texts  # the room ships its embedding
+        assert prompts[pid]["test_views"]  # and it is seen in the test views
+        v = prompts[pid]["test_views"][0]
+        ids = cv2.imread(str(DEV_ROOM / "ids" / f"{v}.png"), cv2.IMREAD_UNCHANGED)
+        gt = read_mask(room / "eval" / "masks" / pid / f"{v}.png")
+        assert (gt == np.isin(ids, targets)).all()
+
+
+def test_an_unknown_prompt_set_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([str(DEV_ROOM), str(tmp_path / "room"), "--prompts", "thin,stools"])
+    assert e.value.code == 2
+    assert "--prompts: unknown set 'stools'" in capsys.readouterr().err
+    assert not (tmp_path / "room").exists()

@@ -347,6 +347,12 @@ def test_relative_confidence_still_silences_a_confuser():
     assert _iou(out.selected, target) == 1.0
 
 
+def _one_view(S1, S0):
+    """Aggregated evidence as one view's (confidence 1): the typical view is the pooled one."""
+    ids = np.arange(S1.size)
+    return [ViewEvidence("v", ids, S1.copy(), S0.copy(), False)], np.ones(1)
+
+
 def test_guard_fuses_a_collapsed_vote_with_the_field():
     from stages.query.lifting import guard
 
@@ -360,11 +366,11 @@ def test_guard_fuses_a_collapsed_vote_with_the_field():
     field_sel = np.arange(n) < 2400
     sel = np.zeros(n, bool)
     sel[:19] = True  # #26: 19 Gaussians against the field's 2,225
-    fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
     assert fell_back and fused.sum() == 2325 and fused[:2225].all() and fused[2300:2400].all()
     # a lifted answer that is merely smaller than the field's (over half of it) is left alone
     sel[:1200] = True
-    same, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    same, fell_back = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
     assert not fell_back and (same == sel).all()
 
 
@@ -382,14 +388,47 @@ def test_guard_does_not_fuse_a_field_that_over_selects_what_the_masks_reject():
     S1[1400:3400], S0[1400:3400] = 1.0, 9.0  # the support the field also selects
     field_sel = np.arange(n) < 3400
     sel = np.arange(n) < 1400
-    same, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    same, fell_back = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
     assert not fell_back and (same == sel).all()
     S1[500:1400], S0[500:1400] = 2.5, 7.5  # a thin part the masks graze, voted out
     S1[1400:3400], S0[1400:3400] = 2.5, 7.5
     field_sel = np.arange(n) < 3400
     sel = np.arange(n) < 500
-    fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams())
+    fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
     assert fell_back and (fused == field_sel).all()
+
+
+def test_guard_does_not_fuse_what_only_some_views_take_in_whole():
+    """The same thin part and support, pooled 25% in (claim under half the vote's), but from
+    views that differ: under eroded masks every view grazes them (25% each) and they are
+    fused; when one view in four takes them in whole and the rest leave them out (a box over
+    the object and its table), the typical view says out and the vote stands."""
+    from stages.query.lifting import accumulate, guard, typical_share
+
+    n, views = 4000, 8
+    obj, added = np.arange(n) < 1400, (np.arange(n) >= 1400) & (np.arange(n) < 3400)
+    field_sel = obj | added
+    ids = np.arange(n)
+
+    def evidence(added_share):
+        ev = []
+        for v, a in enumerate(added_share):
+            w = np.where(obj, 20.0, 2.0)  # the object's claim is 10x the support's
+            s1 = np.where(obj, 19.0, np.where(added, a * 2.0, 0.0))
+            ev.append(ViewEvidence(f"v{v}", ids, s1, w - s1, False))
+        return ev
+
+    conf = np.ones(views)
+    grazed = evidence([0.25] * views)
+    whole = evidence([1.0, 0.0, 0.0, 0.0] * 2)
+    assert typical_share(grazed, conf, added) == pytest.approx(0.25)
+    assert typical_share(whole, conf, added) == 0.0
+    p = LiftParams()
+    for ev, fuses in ((grazed, True), (whole, False)):
+        S1, S0 = accumulate(ev, conf, n)  # only the pooled share could fuse the support
+        fused, fell_back = guard(obj.copy(), field_sel, S1, S0, p, ev, conf)
+        assert fell_back == fuses
+        assert (fused == (field_sel if fuses else obj)).all()
 
 
 def test_thin_parts_of_an_object_the_masks_mostly_agree_on():
