@@ -65,11 +65,28 @@ def eval_cmd(
         _benchmark(benchmark, room, scenes, features, res_masks, p, run)
         return
     r = run_eval(room, features, res_masks, p, run, TERMINAL)
-    click.echo(f"{'variant':14s} {'mIoU':>7s} {'mPA':>7s} {'mP':>7s} {'mIoU3D':>7s}")
+    click.echo(
+        f"{'variant':16s} {'mIoU':>7s} {'mPA':>7s} {'mP':>7s} {'mIoU3D':>7s}  "
+        f"{'worst prompt':17s} {'<full':>5s}  worst / exact answer"
+    )
     for v, s in r.report["variants"].items():
         cells = [s["miou"], s["mpa"], s["mp"], s.get("miou_3d")]
-        click.echo(f"{v:14s} " + " ".join("      -" if c is None else f"{c:7.4f}" for c in cells))
+        click.echo(
+            f"{v:16s} "
+            + " ".join("      -" if c is None else f"{c:7.4f}" for c in cells)
+            + f"  {_floor(s)}"
+        )
     click.echo(f"report: {r.out}" + (f"\nhtml:   {r.html}" if r.html else ""))
+
+
+def _floor(s: dict) -> str:
+    """A variant's worst prompt, its count of prompts more than the margin below `full`, and its
+    worst prompt against the exact 3D answer (stages.evaluation.worst)."""
+    w, b, x = s.get("worst_prompt"), s.get("below_full"), s.get("against_exact")
+    worst = f"{w['id'][:10]} {w['iou']:.3f}" if w else "-"
+    xw = x["worst"] if x else None
+    exact = f"{xw['id']} {xw['iou']:.3f} / {xw['exact']:.3f} = {xw['share']:.2f}" if xw else "-"
+    return f"{worst:17s} {b['count'] if b else '-':>5}  {exact}"
 
 
 def _benchmark(

@@ -48,7 +48,7 @@ from stages.evaluation.variants import (
     VisibilityCache,
     render_direct,
 )
-from stages.evaluation.worst import add_worst_prompts
+from stages.evaluation.worst import add_against_exact, add_worst_prompts
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.lifted import lifted_masks
@@ -570,6 +570,7 @@ def run_eval(
     if room.gaussian_ids is not None:
         with timer("exact_answer"):
             doc["exact_answer"] = _exact_answer(room, models.rast, test)
+        add_against_exact(doc["variants"], doc["exact_answer"])
     with staged_outputs():  # the page, its images and the report appear together
         if run.html is not None:
             with timer("html"):  # doc["timings_s"] is timer.t: the page's own time lands too

@@ -93,12 +93,20 @@ def page_files_dir(page: Path) -> Path:
 def floor_table(variants: dict) -> str:
     """The floor under the prompts (stages.evaluation.worst): each variant's worst prompt and
     how many prompts trail `full` by more than the margin (a mean can hide a collapse)."""
+    exact = any(r.get("against_exact") for r in variants.values())
     rows = [
         "</table><h2>Worst prompt</h2><table><tr><th class='l'>variant</th><th class='l'>"
-        "worst prompt</th><th>IoU</th><th class='l'>prompts below full</th></tr>"
+        "worst prompt</th><th>IoU</th><th class='l'>prompts below full</th>"
+        + (
+            "<th class='l'>worst against the exact answer (IoU / exact)</th>"
+            "<th>mean share of the exact answer</th>"
+            if exact
+            else ""
+        )
+        + "</tr>"
     ]
     for v, r in variants.items():
-        w, b = r.get("worst_prompt"), r.get("below_full")
+        w, b, x = r.get("worst_prompt"), r.get("below_full"), r.get("against_exact")
         worst = f"{esc(w['id'])}: {esc(w['text'])}" if w else "-"
         below = (
             f"{b['count']} (more than {b['margin']:.2f} below)"
@@ -106,9 +114,18 @@ def floor_table(variants: dict) -> str:
             if b
             else "-"
         )
+        against = ""
+        if exact:
+            xw = x["worst"] if x else None
+            against = (
+                f"<td class='l'>{esc(xw['id'])}: {fmt(xw['iou'])} / {fmt(xw['exact'])} = "
+                f"{fmt(xw['share'])}</td><td>{fmt(x['mean_share'])}</td>"
+                if x and xw
+                else "<td class='l'>-</td><td>-</td>"
+            )
         rows.append(
             f"<tr><td class='l'>{esc(v)}</td><td class='l'>{worst}</td>"
-            f"<td>{fmt(w['iou'] if w else None)}</td><td class='l'>{below}</td></tr>"
+            f"<td>{fmt(w['iou'] if w else None)}</td><td class='l'>{below}</td>{against}</tr>"
         )
     return "".join(rows)
 
@@ -160,14 +177,20 @@ def eval_page(
             "px of blend weight (less: the codebook entry / OSH decides); masks rendered from "
             "the 3D selection.</p><table>"
         )
+    ceiling = exact["prompts"] if exact is not None else None
     body.append(
         "</table><h2>Per prompt (IoU)</h2><table><tr><th class='l'>id</th>"
-        "<th class='l'>prompt</th>" + "".join(f"<th>{esc(v)}</th>" for v in variants) + "</tr>"
+        "<th class='l'>prompt</th>"
+        + "".join(f"<th>{esc(v)}</th>" for v in variants)
+        + ("<th>exact 3D answer</th>" if ceiling is not None else "")
+        + "</tr>"
     )
     for p in prompts:
         cells = "".join(
             f"<td>{fmt(report['variants'][v]['prompts'][p.id].get('iou'))}</td>" for v in variants
         )
+        if ceiling is not None:
+            cells += f"<td>{fmt(ceiling.get(p.id, {}).get('iou'))}</td>"
         body.append(
             f"<tr><td class='l'>{esc(p.id)}</td><td class='l'>{esc(p.text)}</td>{cells}</tr>"
         )

@@ -39,7 +39,7 @@ def test_benchmark_scored_end_to_end(tmp_path, benchmark, capsys):
     assert main(_argv(s, benchmark, out, "--html", str(html), "--variants", variants)) == 0
     r = json.loads(out.read_text())
     validate_json(r, "goi.eval", str(out))
-    assert r["schema_version"] == "1.4" and r["benchmark"]["name"] == benchmark
+    assert r["schema_version"] == "1.5" and r["benchmark"]["name"] == benchmark
     scene = r["benchmark"]["scenes"]["toy"]
     assert scene["n_frames"] == 2 and not scene["skipped"]
     for v in variants.split(","):

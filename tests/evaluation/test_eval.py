@@ -71,7 +71,10 @@ def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
     # which are the rendered argmax of the same one-hot objects
     exact = r["exact_answer"]
     assert set(exact["prompts"]) == {"p1", "p2"} and exact["miou"] >= 0.9
-    assert "The exact 3D answer" in page
+    assert "The exact 3D answer" in page and "<th>exact 3D answer</th>" in page
+    for v in r["variants"].values():  # each prompt read against its exact answer too
+        w = v["against_exact"]["worst"]
+        assert w["share"] == v["prompts"][w["id"]]["iou"] / exact["prompts"][w["id"]]["iou"]
     assert main(argv) == 2  # the report exists: --force is needed
     # a second eval with other RES masks and the same --work refits nothing
     work = tmp_path / "r.work"
