@@ -316,15 +316,16 @@ def vote_share(lifted: Lifted, p: LiftParams, fallback: np.ndarray | None) -> np
 
 def typical_share(evidence: list[ViewEvidence], conf: np.ndarray, members: np.ndarray) -> float:
     """The share of "in" the typical view gives the Gaussians `members` [G] bool: each view's own
-    share (its confidence-weighted s1 over s1 + s0 of the members it sees), and the median over
-    the views, each weighted by how much of the members it sees. 0 when no view sees them."""
+    share (s1 over s1 + s0 of the members it sees), and the median over the views, each
+    weighted by how much of the members it sees times its confidence. 0 when no view sees
+    them."""
     shares, weights = [], []
     for c, e in zip(conf, evidence, strict=True):
         m = members[e.ids]
-        seen = c * float((e.s1[m] + e.s0[m]).sum())
-        if seen > 0:
-            shares.append(c * float(e.s1[m].sum()) / seen)
-            weights.append(seen)
+        seen = float((e.s1[m] + e.s0[m]).sum())
+        if c > 0 and seen > 0:
+            shares.append(float(e.s1[m].sum()) / seen)
+            weights.append(c * seen)
     if not shares:
         return 0.0
     order = np.argsort(shares, kind="stable")
@@ -375,8 +376,11 @@ def guard(
     extra = field_sel & kept & ~sel
     claim = float(S1[extra].sum())
     seen = extra & (E >= p.min_evidence)
-    pooled = claim >= PARTLY_IN * float(E[seen].sum())  # the masks put it partly in, pooled
-    pooled = pooled and typical_share(evidence, conf, extra) >= TYPICAL_PARTLY_IN
-    if claim < LOST_CLAIM * float(S1[sel].sum()) and not pooled:
+    lost = claim >= LOST_CLAIM * float(S1[sel].sum())  # the vote lost much of the masks' claim
+    partly = (  # the masks put it partly in, pooled and in the typical view
+        claim >= PARTLY_IN * float(E[seen].sum())
+        and typical_share(evidence, conf, extra) >= TYPICAL_PARTLY_IN
+    )
+    if not (lost or partly):
         return sel, False  # the masks claim little of what the field adds: it over-selects
     return sel | extra, True

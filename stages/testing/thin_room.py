@@ -189,6 +189,8 @@ def main(argv: list[str] | None = None) -> None:
     )
     a = ap.parse_args(argv)
     names = [s for s in a.prompts.split(",") if s]
+    if not names:
+        ap.error(f"--prompts: name at least one set of {', '.join(PROMPT_SETS)}")
     if unknown := [n for n in names if n not in PROMPT_SETS]:
         ap.error(f"--prompts: unknown set {unknown[0]!r} (known: {', '.join(PROMPT_SETS)})")
     added = tuple(p for n in names for p in PROMPT_SETS[n])
