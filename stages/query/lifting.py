@@ -296,9 +296,13 @@ def fuse(
         S1, S0 = accumulate(evidence, conf, n)
         rounds += 1
     sel, evident = decide(S1, S0, entry, seen, plane_positive, p)
-    sel, fell_back = guard(sel, seen & plane_positive[entry], S1, S0, p, evidence, conf)
+    sel, weighed = guard(sel, seen & plane_positive[entry], S1, S0, p, evidence, conf)
     confidence = {e.view: round(float(c), 4) for e, c in zip(evidence, conf, strict=True)}
-    info = {"confidence_rounds_run": rounds, "collapsed_vote_fused_with_field": fell_back}
+    info = {
+        "confidence_rounds_run": rounds,
+        "collapsed_vote_fused_with_field": bool(weighed and weighed["fused"]),
+        "guard": weighed,
+    }
     return Lifted(sel, evident, S1, S0, confidence, info)
 
 
@@ -341,8 +345,11 @@ def guard(
     p: LiftParams,
     evidence: list[ViewEvidence],
     conf: np.ndarray,
-) -> tuple[np.ndarray, bool]:
-    """[G] selection, and whether it was fused with the field's: when the lifted answer holds
+) -> tuple[np.ndarray, dict | None]:
+    """[G] selection, and what the guard weighed (None when the size rule did not fire; else
+    the vote's, the field's and the added Gaussians' counts, the additions' claim against the
+    vote's, their pooled and typical-view shares, and whether they were fused; recorded with
+    the answer, so a user can see why a prompt was fused or not). When the lifted answer holds
     fewer than COLLAPSE_RATIO of the Gaussians the field selects (#26: 19 against 2,225; a
     palm whose fronds erosion erased: 980 against 4,371) the vote may have lost what the masks
     only graze, and the field's answer joins it where the masks see it and do not reject it
@@ -370,17 +377,24 @@ def guard(
     evidence and confidences that S1 and S0 accumulate."""
     n_field = int(field_sel.sum())
     if n_field == 0 or sel.sum() >= COLLAPSE_RATIO * n_field:
-        return sel, False
+        return sel, None
     E = S1 + S0
     kept = (E < p.min_evidence) | (S1 >= REJECTED_SHARE * E)
     extra = field_sel & kept & ~sel
-    claim = float(S1[extra].sum())
-    seen = extra & (E >= p.min_evidence)
-    lost = claim >= LOST_CLAIM * float(S1[sel].sum())  # the vote lost much of the masks' claim
-    partly = (  # the masks put it partly in, pooled and in the typical view
-        claim >= PARTLY_IN * float(E[seen].sum())
-        and typical_share(evidence, conf, extra) >= TYPICAL_PARTLY_IN
-    )
-    if not (lost or partly):
-        return sel, False  # the masks claim little of what the field adds: it over-selects
-    return sel | extra, True
+    claim, vote_claim = float(S1[extra].sum()), float(S1[sel].sum())
+    seen = float(E[extra & (E >= p.min_evidence)].sum())
+    typical = typical_share(evidence, conf, extra)
+    lost = claim >= LOST_CLAIM * vote_claim  # the vote lost much of the masks' claim
+    # the masks put the additions partly in, pooled and in the typical view
+    partly = claim >= PARTLY_IN * seen and typical >= TYPICAL_PARTLY_IN
+    # (when not, the masks claim little of what the field adds: it over-selects)
+    weighed = {
+        "vote": int(sel.sum()),
+        "field": n_field,
+        "added": int(extra.sum()),
+        "claim_vs_vote": round(claim / vote_claim, 4) if vote_claim > 0 else None,
+        "pooled_share": round(claim / seen, 4) if seen > 0 else None,
+        "typical_share": round(typical, 4),
+        "fused": lost or partly,
+    }
+    return (sel | extra if weighed["fused"] else sel), weighed

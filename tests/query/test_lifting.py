@@ -366,12 +366,15 @@ def test_guard_fuses_a_collapsed_vote_with_the_field():
     field_sel = np.arange(n) < 2400
     sel = np.zeros(n, bool)
     sel[:19] = True  # #26: 19 Gaussians against the field's 2,225
-    fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
-    assert fell_back and fused.sum() == 2325 and fused[:2225].all() and fused[2300:2400].all()
+    fused, weighed = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
+    assert weighed is not None and weighed["fused"]
+    assert fused.sum() == 2325 and fused[:2225].all() and fused[2300:2400].all()
+    # what it weighed is recorded: 19 against 2,400, and the 2,306 it added
+    assert (weighed["vote"], weighed["field"], weighed["added"]) == (19, 2400, 2306)
     # a lifted answer that is merely smaller than the field's (over half of it) is left alone
     sel[:1200] = True
-    same, fell_back = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
-    assert not fell_back and (same == sel).all()
+    same, weighed = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
+    assert weighed is None and (same == sel).all()  # the size rule did not fire
 
 
 def test_guard_does_not_fuse_a_field_that_over_selects_what_the_masks_reject():
@@ -388,14 +391,16 @@ def test_guard_does_not_fuse_a_field_that_over_selects_what_the_masks_reject():
     S1[1400:3400], S0[1400:3400] = 1.0, 9.0  # the support the field also selects
     field_sel = np.arange(n) < 3400
     sel = np.arange(n) < 1400
-    same, fell_back = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
-    assert not fell_back and (same == sel).all()
+    same, weighed = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
+    assert weighed is not None and not weighed["fused"] and (same == sel).all()
+    assert weighed["claim_vs_vote"] == round(2000 / (1400 * 9), 4)  # 0.16 of the vote's claim
+    assert weighed["pooled_share"] == 0.1
     S1[500:1400], S0[500:1400] = 2.5, 7.5  # a thin part the masks graze, voted out
     S1[1400:3400], S0[1400:3400] = 2.5, 7.5
     field_sel = np.arange(n) < 3400
     sel = np.arange(n) < 500
-    fused, fell_back = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
-    assert fell_back and (fused == field_sel).all()
+    fused, weighed = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
+    assert weighed is not None and weighed["fused"] and (fused == field_sel).all()
 
 
 def test_guard_does_not_fuse_what_only_some_views_take_in_whole():
@@ -426,8 +431,9 @@ def test_guard_does_not_fuse_what_only_some_views_take_in_whole():
     p = LiftParams()
     for ev, fuses in ((grazed, True), (whole, False)):
         S1, S0 = accumulate(ev, conf, n)  # only the pooled share could fuse the support
-        fused, fell_back = guard(obj.copy(), field_sel, S1, S0, p, ev, conf)
-        assert fell_back == fuses
+        fused, weighed = guard(obj.copy(), field_sel, S1, S0, p, ev, conf)
+        assert weighed is not None and weighed["fused"] == fuses
+        assert weighed["pooled_share"] == 0.25 and weighed["claim_vs_vote"] < 0.5
         assert (fused == (field_sel if fuses else obj)).all()
 
 
