@@ -12,10 +12,11 @@ prompts from the room's tools (`res_masks.py`, simulated; `res_masks_sam.py`, a 
 `eroded`: every prompt's ground truth eroded by 2-3 px in each view (the collapse of #26).
 `--prompts held-out` adds instead (or with `thin,held-out`, too) four prompts for the room's
 other furniture, which goi's constants were never chosen on: a check of what works only on the
-prompts it was tuned on.
+prompts it was tuned on. `--mask-seed S` draws every RES mask anew from the same error model
+(the room's own are seed 0): the same check for the masks.
 
     python -m stages.testing.thin_room ../shared/dev-room OUT [--res res,res-correlated,...]
-        [--prompts thin,held-out]
+        [--prompts thin,held-out] [--mask-seed S]
 """
 
 from __future__ import annotations
@@ -151,10 +152,17 @@ def eroded_masks(room: Path, out: Path, seed: int = 0) -> None:
                 _write_mask(out / p["id"] / f"{v}.png", e)
 
 
+def _made_with(src: Path, name: str) -> int | None:
+    """The seed the room's own RES set `name` was made with (its meta.json), if it has one."""
+    meta = src / name / "meta.json"
+    return json.loads(meta.read_text()).get("seed") if meta.is_file() else None
+
+
 def add_res(room: Path, src: Path, name: str, tools: Path, seed: int = 0) -> Path:
     """RES set `name` for the extended `room` (from the room `src`): the room's own masks of its
-    prompts linked, the added prompts' masks made by the set's tool; 'eroded' is made here for
-    every prompt."""
+    prompts linked when the room made them with `seed`, the other prompts' masks made by the
+    set's tool with `seed` (another seed: a new draw of every mask, the same error model);
+    'eroded' is made here for every prompt."""
     room, src = Path(room), Path(src).resolve()
     out = room / name
     out.mkdir()
@@ -162,11 +170,15 @@ def add_res(room: Path, src: Path, name: str, tools: Path, seed: int = 0) -> Pat
         eroded_masks(room, out, seed)
         return out
     tool, opts = RES_SETS[name]
-    own = {p["id"] for p in json.loads((src / "prompts.json").read_text())}
+    own = set()
+    if _made_with(src, name) == seed:
+        own = {p["id"] for p in json.loads((src / "prompts.json").read_text())}
     added = [p for p in json.loads((room / "prompts.json").read_text()) if p["id"] not in own]
     for pid in sorted(own):
         if (src / name / pid).is_dir():
             (out / pid).symlink_to(src / name / pid)
+    if not added:
+        return out  # every prompt's masks are the room's own (the tool needs a prompt)
     with tempfile.TemporaryDirectory() as t:
         tr = _tool_room(room, added, Path(t) / "room")
         made = Path(t) / "made"
@@ -187,6 +199,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--prompts", default="thin", help=f"prompt sets to add, of {','.join(PROMPT_SETS)}"
     )
+    ap.add_argument(
+        "--mask-seed",
+        type=int,
+        default=0,
+        help="seed of the RES masks (default 0, the room's own; another draws every mask anew)",
+    )
     a = ap.parse_args(argv)
     names = [s for s in a.prompts.split(",") if s]
     if not names:
@@ -196,7 +214,8 @@ def main(argv: list[str] | None = None) -> None:
     added = tuple(p for n in names for p in PROMPT_SETS[n])
     room = extend_room(a.src, a.out, added)
     for name in [s for s in a.res.split(",") if s]:
-        add_res(room, a.src, name, a.tools or Path(a.src).resolve().parent / "tools")
+        tools = a.tools or Path(a.src).resolve().parent / "tools"
+        add_res(room, a.src, name, tools, a.mask_seed)
         print(f"{name}: {len(list((room / name).iterdir()))} prompts")
     for p in json.loads((room / "prompts.json").read_text())[-len(added) :]:
         gt = room / "eval" / "masks" / p["id"]

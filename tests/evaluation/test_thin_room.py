@@ -10,6 +10,7 @@ from stages.scene.images import read_mask
 from stages.testing.thin_room import (
     HELD_OUT_PROMPTS,
     THIN_PROMPTS,
+    add_res,
     eroded_masks,
     extend_room,
     main,
@@ -67,3 +68,21 @@ def test_an_unknown_prompt_set_is_refused(tmp_path, capsys):
     assert e.value.code == 2
     assert "--prompts: unknown set 'stools'" in capsys.readouterr().err
     assert not (tmp_path / "room").exists()
+
+
+def test_another_mask_seed_draws_the_rooms_own_prompts_anew(tmp_path):
+    """Seed 0 links the room's own masks (its RES sets are seed 0); another seed makes every
+    prompt's masks with the room's tool, a new draw of the same error model."""
+    room = extend_room(DEV_ROOM, tmp_path / "room", ())
+    basketball = [p for p in json.loads((room / "prompts.json").read_text()) if p["id"] == "p08"]
+    (room / "prompts.json").write_text(json.dumps(basketball))  # one prompt keeps it fast
+    tools = DEV_ROOM.resolve().parent / "tools"
+    same = add_res(room, DEV_ROOM, "res", tools, seed=0)
+    assert (same / "p08").is_symlink()
+    (room / "res").rename(room / "res-0")
+    drawn = add_res(room, DEV_ROOM, "res", tools, seed=1)
+    assert not (drawn / "p08").is_symlink()
+    views = sorted(f.name for f in (drawn / "p08").glob("*.png"))
+    assert views == sorted(f.name for f in (DEV_ROOM / "res" / "p08").glob("*.png"))
+    old = room / "res-0" / "p08"
+    assert any((read_mask(drawn / "p08" / v) != read_mask(old / v)).any() for v in views)
