@@ -371,8 +371,8 @@ def test_guard_fuses_a_collapsed_vote_with_the_field():
     assert fused.sum() == 2325 and fused[:2225].all() and fused[2300:2400].all()
     # what it weighed is recorded: 19 against 2,400, and the 2,306 it added
     assert (weighed["vote"], weighed["field"], weighed["added"]) == (19, 2400, 2306)
-    # a lifted answer that is merely smaller than the field's (over half of it) is left alone
-    sel[:1200] = True
+    # a lifted answer that is merely smaller than the field's (0.6 of it or more) is left alone
+    sel[:1440] = True
     same, weighed = guard(sel, field_sel, S1, S0, LiftParams(), *_one_view(S1, S0))
     assert weighed is None and (same == sel).all()  # the size rule did not fire
 
