@@ -9,7 +9,8 @@ prompts.json adds them, with ground truth made from ids/ the way the room's own 
 (the test views where the targets cover >= 0.5% of the pixels), and `add_res` writes a RES set
 for the copy: the room's own masks of the original prompts (symlinked) plus masks for the added
 prompts from the room's tools (`res_masks.py`, simulated; `res_masks_sam.py`, a real SAM), or
-`eroded`: every prompt's ground truth eroded by 2-3 px in each view (the collapse of #26).
+`eroded`: every prompt's ground truth eroded by 2-3 px in each view (the collapse of #26), or
+`true`: the ground truth itself, a RES model without error (the lifted mode's ceiling).
 `--prompts held-out` adds instead (or with `thin,held-out`, too) four prompts for the room's
 other furniture, which goi's constants were never chosen on: a check of what works only on the
 prompts it was tuned on. `--mask-seed S` draws every RES mask anew from the same error model
@@ -132,24 +133,45 @@ def _tool_room(room: Path, prompts: list[dict], at: Path) -> Path:
     return at
 
 
-def eroded_masks(room: Path, out: Path, seed: int = 0) -> None:
-    """Every prompt's training-view ground truth eroded by 2-3 px (drawn per prompt and view),
-    where the targets cover >= 0.5% of the view and something survives."""
-    import cv2
-
+def _truth(room: Path):
+    """(prompt, view, [H, W] bool ground truth) of every training view where the prompt's
+    targets cover >= 0.5% of the pixels: the views a RES tool of the room answers."""
     split = json.loads((room / "split.json").read_text())
     for p in json.loads((room / "prompts.json").read_text()):
         for v in split["train"]:
             m = np.isin(_ids(room, v), p["targets"])
-            if m.mean() < MIN_FRAC:
-                continue
-            key = [seed, zlib.crc32(p["id"].encode()), zlib.crc32(v.encode())]
-            rng = np.random.default_rng(key)
-            r = int(rng.integers(ERODE_PX[0], ERODE_PX[1] + 1))
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-            e = cv2.erode(m.astype(np.uint8), k) > 0
-            if e.any():
-                _write_mask(out / p["id"] / f"{v}.png", e)
+            if m.mean() >= MIN_FRAC:
+                yield p, v, m
+
+
+def eroded_masks(room: Path, out: Path, seed: int = 0) -> None:
+    """Every prompt's training-view ground truth eroded by 2-3 px (drawn per prompt and view),
+    where something survives."""
+    import cv2
+
+    for p, v, m in _truth(room):
+        key = [seed, zlib.crc32(p["id"].encode()), zlib.crc32(v.encode())]
+        r = int(np.random.default_rng(key).integers(ERODE_PX[0], ERODE_PX[1] + 1))
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        e = cv2.erode(m.astype(np.uint8), k) > 0
+        if e.any():
+            _write_mask(out / p["id"] / f"{v}.png", e)
+
+
+def true_masks(room: Path, out: Path) -> None:
+    """Every prompt's training-view ground truth as its RES mask: a RES model that makes no
+    error. What the lifted mode scores with it is its ceiling on the room, the part of a
+    target that no better mask can win (the rendering of thin parts, views that never see a
+    part), against which the scores with real masks are read."""
+    for p, v, m in _truth(room):
+        _write_mask(out / p["id"] / f"{v}.png", m)
+
+
+#: RES sets made here from the ground truth, not by a room tool.
+MADE_HERE = {
+    "eroded": eroded_masks,
+    "true": lambda room, out, seed: true_masks(room, out),
+}
 
 
 def _made_with(src: Path, name: str) -> int | None:
@@ -162,12 +184,12 @@ def add_res(room: Path, src: Path, name: str, tools: Path, seed: int = 0) -> Pat
     """RES set `name` for the extended `room` (from the room `src`): the room's own masks of its
     prompts linked when the room made them with `seed`, the other prompts' masks made by the
     set's tool with `seed` (another seed: a new draw of every mask, the same error model);
-    'eroded' is made here for every prompt."""
+    'eroded' and 'true' are made here for every prompt (`MADE_HERE`)."""
     room, src = Path(room), Path(src).resolve()
     out = room / name
     out.mkdir()
-    if name == "eroded":
-        eroded_masks(room, out, seed)
+    if name in MADE_HERE:
+        MADE_HERE[name](room, out, seed)
         return out
     tool, opts = RES_SETS[name]
     own = set()
@@ -194,7 +216,11 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("src", type=Path, help="the dev room (read only)")
     ap.add_argument("out", type=Path, help="new directory for the extended copy")
-    ap.add_argument("--res", default="res,res-correlated,eroded", help="RES sets to make")
+    ap.add_argument(
+        "--res",
+        default="res,res-correlated,eroded",
+        help=f"RES sets to make, of {','.join([*RES_SETS, *MADE_HERE])}",
+    )
     ap.add_argument("--tools", type=Path, help="the room tools (default: SRC/../tools)")
     ap.add_argument(
         "--prompts", default="thin", help=f"prompt sets to add, of {','.join(PROMPT_SETS)}"
@@ -211,9 +237,13 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--prompts: name at least one set of {', '.join(PROMPT_SETS)}")
     if unknown := [n for n in names if n not in PROMPT_SETS]:
         ap.error(f"--prompts: unknown set {unknown[0]!r} (known: {', '.join(PROMPT_SETS)})")
+    sets = [s for s in a.res.split(",") if s]
+    if unknown := [s for s in sets if s not in RES_SETS and s not in MADE_HERE]:
+        known = ", ".join([*RES_SETS, *MADE_HERE])
+        ap.error(f"--res: unknown set {unknown[0]!r} (known: {known})")
     added = tuple(p for n in names for p in PROMPT_SETS[n])
     room = extend_room(a.src, a.out, added)
-    for name in [s for s in a.res.split(",") if s]:
+    for name in sets:
         tools = a.tools or Path(a.src).resolve().parent / "tools"
         add_res(room, a.src, name, tools, a.mask_seed)
         print(f"{name}: {len(list((room / name).iterdir()))} prompts")

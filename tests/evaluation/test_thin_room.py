@@ -14,6 +14,7 @@ from stages.testing.thin_room import (
     eroded_masks,
     extend_room,
     main,
+    true_masks,
 )
 from tests.helpers import DEV_ROOM
 
@@ -44,6 +45,32 @@ def test_extended_room_adds_prompts_with_ground_truth_and_eroded_masks(tmp_path)
         m = read_mask(f)
         assert m.any() and not (m & (ids != 23)).any()
         assert m.sum() < np.sum(ids == 23)
+
+
+def test_true_masks_are_the_training_views_ground_truth(tmp_path):
+    """The ceiling's RES set: every training view where the target covers >= 0.5% of the
+    pixels has the ground truth as its mask, and no other view has one."""
+    room = extend_room(DEV_ROOM, tmp_path / "room")
+    clock = [p for p in json.loads((room / "prompts.json").read_text()) if p["id"] == "t03"]
+    (room / "prompts.json").write_text(json.dumps(clock))  # one prompt keeps it fast
+    true_masks(room, tmp_path / "true")
+    split = json.loads((DEV_ROOM / "split.json").read_text())
+    made = {f.stem for f in (tmp_path / "true" / "t03").iterdir()}
+    assert made
+    for v in split["train"]:
+        ids = cv2.imread(str(DEV_ROOM / "ids" / f"{v}.png"), cv2.IMREAD_UNCHANGED)
+        gt = ids == 24
+        assert (v in made) == (gt.mean() >= 0.005)
+        if v in made:
+            assert (read_mask(tmp_path / "true" / "t03" / f"{v}.png") == gt).all()
+
+
+def test_an_unknown_res_set_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([str(DEV_ROOM), str(tmp_path / "room"), "--res", "res,perfect"])
+    assert e.value.code == 2
+    assert "--res: unknown set 'perfect'" in capsys.readouterr().err
+    assert not (tmp_path / "room").exists()
 
 
 def test_held_out_prompts_are_the_rooms_other_furniture(tmp_path):
