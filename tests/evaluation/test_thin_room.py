@@ -65,14 +65,6 @@ def test_true_masks_are_the_training_views_ground_truth(tmp_path):
             assert (read_mask(tmp_path / "true" / "t03" / f"{v}.png") == gt).all()
 
 
-def test_an_unknown_res_set_is_refused(tmp_path, capsys):
-    with pytest.raises(SystemExit) as e:
-        main([str(DEV_ROOM), str(tmp_path / "room"), "--res", "res,perfect"])
-    assert e.value.code == 2
-    assert "--res: unknown set 'perfect'" in capsys.readouterr().err
-    assert not (tmp_path / "room").exists()
-
-
 def test_held_out_prompts_are_the_rooms_other_furniture(tmp_path):
     room = extend_room(DEV_ROOM, tmp_path / "room", THIN_PROMPTS + HELD_OUT_PROMPTS)
     prompts = {p["id"]: p for p in json.loads((room / "prompts.json").read_text())}
@@ -89,11 +81,17 @@ def test_held_out_prompts_are_the_rooms_other_furniture(tmp_path):
         assert (gt == np.isin(ids, targets)).all()
 
 
-def test_an_unknown_prompt_set_is_refused(tmp_path, capsys):
+@pytest.mark.parametrize(
+    ("option", "value", "unknown"),
+    [("--prompts", "thin,stools", "stools"), ("--res", "res,perfect", "perfect")],
+)
+def test_an_unknown_set_is_refused_before_anything_is_made(
+    tmp_path, capsys, option, value, unknown
+):
     with pytest.raises(SystemExit) as e:
-        main([str(DEV_ROOM), str(tmp_path / "room"), "--prompts", "thin,stools"])
+        main([str(DEV_ROOM), str(tmp_path / "room"), option, value])
     assert e.value.code == 2
-    assert "--prompts: unknown set 'stools'" in capsys.readouterr().err
+    assert f"{option}: unknown set '{unknown}'" in capsys.readouterr().err
     assert not (tmp_path / "room").exists()
 
 
