@@ -137,9 +137,11 @@ def _truth(room: Path):
     """(prompt, view, [H, W] bool ground truth) of every training view where the prompt's
     targets cover >= 0.5% of the pixels: the views a RES tool of the room answers."""
     split = json.loads((room / "split.json").read_text())
-    for p in json.loads((room / "prompts.json").read_text()):
-        for v in split["train"]:
-            m = np.isin(_ids(room, v), p["targets"])
+    prompts = json.loads((room / "prompts.json").read_text())
+    for v in split["train"]:
+        ids = _ids(room, v)  # read once for every prompt
+        for p in prompts:
+            m = np.isin(ids, p["targets"])
             if m.mean() >= MIN_FRAC:
                 yield p, v, m
 
@@ -243,8 +245,8 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--res: unknown set {unknown[0]!r} (known: {known})")
     added = tuple(p for n in names for p in PROMPT_SETS[n])
     room = extend_room(a.src, a.out, added)
+    tools = a.tools or Path(a.src).resolve().parent / "tools"
     for name in sets:
-        tools = a.tools or Path(a.src).resolve().parent / "tools"
         add_res(room, a.src, name, tools, a.mask_seed)
         print(f"{name}: {len(list((room / name).iterdir()))} prompts")
     for p in json.loads((room / "prompts.json").read_text())[-len(added) :]:
