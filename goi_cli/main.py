@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import click
 
-from goi_cli import batch_commands, commands, eval_commands, query_commands
+from goi_cli import batch_commands, commands, eval_commands, query_commands, view_commands
 from stages import __version__
 from stages.core.artifacts import set_command
 from stages.core.errors import GoiError
@@ -38,6 +38,7 @@ commands.register(cli)
 query_commands.register(cli)
 eval_commands.register(cli)
 batch_commands.register(cli)
+view_commands.register(cli)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001

@@ -19,6 +19,7 @@ fit-field is needed, and no text embedding: the RES masks carry the prompt.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -44,6 +45,9 @@ from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.field import Field
+
+#: partial(make, views done, views in all): see lift_prompt.
+Partial = Callable[[Callable[[], "LiftedAnswer"], int, int], None]
 
 
 class MaskSource(Protocol):
@@ -160,10 +164,13 @@ def lift_prompt(
     lp: LiftParams,
     visibility: Callable[[Camera], np.ndarray] | None = None,
     report: Report = SILENT,
+    partial: Partial | None = None,
 ) -> LiftedAnswer:
     """The lifted answer of one prompt (see the module doc). A bare Rasterizer (and text None)
     gives the field-free answer. `visibility` may give a cached view_visibility (the eval shares
-    it between prompts)."""
+    it between prompts). `partial(make, done, total)` is called after each view is lifted;
+    `make()` gives the answer of the views so far (a vote: the caller decides when it is worth
+    it; `goi view` shows the answer refining)."""
     check_params(lp)
     if isinstance(renderer, Rasterizer):
         rast, field = renderer, None
@@ -192,10 +199,12 @@ def lift_prompt(
         entry = renderer.decode(field.features)
     files = isinstance(source, ResFiles)
     if source.every_view and lp.res_views is None:
-        evidence = [
-            view_evidence(rast, c, source.mask(c))
-            for c in report.progress(pool, "lift", show=_name)
-        ]
+        evidence: list[ViewEvidence] = []
+        for c in report.progress(pool, "lift", show=_name):
+            evidence.append(view_evidence(rast, c, source.mask(c)))
+            if partial is not None:
+                args = (list(evidence), field, entry, prompt, text, hp, lp, "so far")
+                partial(functools.partial(_answer, *args), len(evidence), len(pool))
         everything = "all mask files" if files else f"every indexed view ({source.source})"
         lifted_all = _answer(evidence, field, entry, prompt, text, hp, lp, everything)
         return _found_nothing(lifted_all, source, prompt)
@@ -217,7 +226,7 @@ def lift_prompt(
     chosen: list[ViewEvidence] = []
     chosen_by = "coverage (RES model)" if not files else f"coverage ({k} of the mask files)"
     answer = None
-    for _ in report.progress(range(k), "lift", length=k):
+    for step in report.progress(range(k), "lift", length=k):
         j = left.pop(next_view([vis[i] for i in left], S, E, COVER))
         cam = pool[j]
         chosen.append(view_evidence(rast, cam, source.mask(cam)))
@@ -225,8 +234,14 @@ def lift_prompt(
         answer = _answer(chosen, field, entry, prompt, text, hp, lp, chosen_by)
         if answer.selected.any():
             S = answer.selected
+        if partial is not None:
+            partial(functools.partial(_given, answer), step + 1, k)
     assert answer is not None  # k >= 1
     return _found_nothing(answer, source, prompt)
+
+
+def _given(answer: LiftedAnswer) -> LiftedAnswer:
+    return answer
 
 
 def _found_nothing(answer: LiftedAnswer, source: MaskSource, prompt: str) -> LiftedAnswer:

@@ -1,0 +1,97 @@
+"""`goi view`: the scene and a prompt's answers in the browser (stages.view, on viser)."""
+
+from __future__ import annotations
+
+import ipaddress
+import time
+from pathlib import Path
+
+import click
+
+from goi_cli.options import EXISTING, build, dataclass_options, load_scene_from, scene_options
+from goi_cli.report import TERMINAL
+from stages.core.errors import GoiError
+from stages.query.pipeline import PromptSources
+from stages.view.session import ViewRun
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@click.command("view")
+@scene_options
+@click.option(
+    "--field",
+    type=EXISTING,
+    help="Field artifact (goi fit-field): the field's answers, the paper's OSH and the lifted "
+    "route. Without it only the field-free lifted route answers (from RES masks).",
+)
+@dataclass_options(PromptSources, skip=("prompt_id",))
+@dataclass_options(ViewRun)
+@click.option(
+    "--for-seconds",
+    type=click.FloatRange(min=0, min_open=True),
+    help="Stop serving after this many seconds (for scripts and tests); default: until Ctrl-C.",
+)
+def view_cmd(field: Path | None, for_seconds: float | None, **kw) -> None:
+    """Ask prompts and look at the answers in 3D, in the browser, while they refine.
+
+    Serves a page (viser) with the scene's Gaussians as splats, the training cameras (click
+    one to fly to it and see its photo) and a prompt box. Enter answers at once with the
+    field's answer (the prompt's cached OSH, else the fixed threshold), then with the chosen
+    route's: the paper's OSH, the fixed threshold, lifted, or field-free lifted, whichever the
+    inputs allow. The selection is lit up in 3D (tint, isolate or hide); when the camera rests,
+    goi's renderer draws the mask at that camera, which is what `goi render-mask
+    --camera-file` writes for it ("Save camera" writes such a file). Answers stay in a
+    history; exports (selection.h5, PLYs, the test views' masks) go under --out.
+
+    Binds 127.0.0.1 by default; needs `pip install 'goi[view]'`.
+    """
+    from stages.view.session import ViewSession
+
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        raise GoiError(
+            "goi view needs viser: pip install 'goi[view]' (or bash scripts/setup.sh with "
+            "GOI_EXTRAS='[view]')"
+        ) from None
+    run = build(ViewRun, kw)
+    sources = build(PromptSources, kw)
+    scene = load_scene_from(kw)
+    session = ViewSession(scene, field, sources, run, TERMINAL)
+    session.default_route()  # refuses inputs that can answer nothing, before serving
+    if not is_loopback(run.host):
+        click.echo(
+            f"goi: warning: serving on {run.host}: anyone who can reach port {run.port} can "
+            "ask prompts and write exports into --out",
+            err=True,
+        )
+    from stages.view.app import ViewerApp
+
+    app = ViewerApp(session, TERMINAL)
+    url = app.start()
+    mib = app.sent_bytes / 2**20
+    click.echo(
+        f"goi view: {url}  ({app.splats.count:,} of {scene.gaussians.count:,} Gaussians sent to "
+        f"each page, {mib:.1f} MiB; Ctrl-C stops)",
+        err=True,
+    )
+    try:
+        if for_seconds is None:
+            while True:
+                time.sleep(3600)
+        else:
+            time.sleep(for_seconds)
+    finally:
+        app.stop()
+
+
+def register(group: click.Group) -> None:
+    group.add_command(view_cmd)

@@ -1,0 +1,601 @@
+"""The viewer's state without a browser: what a prompt can be answered by, the answers, their
+history, the mask at any camera, and the exports.
+
+Every answer is made by the same stage functions as the CLI's, with the same defaults, so a
+route's answer is `goi select`'s for the same inputs bit for bit:
+
+    osh               the paper's route: fit-hyperplane (one RES view, OSH), then select
+    threshold         the fixed cosine threshold on the prompt's embedding (no RES)
+    lifted            select --lift: the RES masks of many views lifted onto the Gaussians,
+                      fused with the field
+    lifted_fieldless  select --lift without --field: the RES masks alone decide
+
+A prompt is answered progressively: first the field's answer (the prompt's cached OSH, else
+the fixed-threshold plane: a lookup per codebook entry, nothing rendered), then the chosen
+route's, which for the lifted routes refines as views are lifted. The browser front end
+(`stages.view.app`) shows what this module computes; the tests drive this module directly.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+
+from stages.core.artifacts import input_digest, sha256_file, write_json
+from stages.core.errors import GoiError
+from stages.core.files import check_output_name, make_dir, read_json, refuse_inputs
+from stages.core.params import AT_LEAST_1, Choice, Range
+from stages.core.report import SILENT, Report
+from stages.models.bundle import Bundle, load_bundle
+from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
+from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, read_hyperplanes
+from stages.query.lifted import LiftedAnswer, lifted_masks
+from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
+from stages.query.lifting import LiftParams
+from stages.query.masks import MaskParams, MaskRun, mask_of, overlay, render_masks
+from stages.query.osh import THRESHOLD, Hyperplane, HyperplaneParams, threshold_plane
+from stages.query.pipeline import PromptSources
+from stages.query.prompts import check_prompt, safe_name, text_embedding
+from stages.query.res import NothingFound, ResFiles, ResIndexed, ResModel, ResSource, checked_index
+from stages.query.selection import Selection, select, write_selection
+from stages.render.rasterizer import Rasterizer
+from stages.scene.cameras import Camera
+from stages.scene.formats.inria import write_inria
+from stages.scene.scene import Scene
+from stages.semantics.decode import SemanticRenderer
+from stages.semantics.field import Field, load_field_for
+
+ROUTES = ("osh", "threshold", "lifted", "lifted_fieldless")
+ROUTE_NAMES = {
+    "osh": "the paper's OSH",
+    "threshold": "fixed threshold",
+    "lifted": "lifted",
+    "lifted_fieldless": "lifted, field-free",
+}
+EXPORTS = ("selection", "subset", "invert", "highlight", "masks")
+#: The file in --out that lists what goi view wrote there (path -> SHA-256): a file is only
+#: ever replaced when goi view wrote it and nobody changed it since.
+OWNER = "goi-view.json"
+#: Prompts longer than this are refused (the CLI's own cap, stages.query.prompts).
+MAX_PROMPT = 300
+
+
+@dataclass
+class ViewRun:
+    out: Path = Path("goi-view")
+    """Directory for exports (OUT/<prompt>/<route>/: selection.h5, PLYs, masks/), saved cameras
+    (OUT/cameras/) and the prompt cache of the paper's OSH (OUT/hyperplanes.h5, as goi query
+    keeps it). Files goi view did not write there are never replaced."""
+    host: str = "127.0.0.1"
+    """Address to serve on. Anything but a loopback address lets whoever reaches the port ask
+    prompts and write exports."""
+    port: Annotated[int, Range(ge=1, le=65535)] = 8080
+    """Port to serve on."""
+    prompts: Path | None = None
+    """A room's prompts.json ([{id, text}, ...]): its prompts are offered in the page, and a
+    prompt's id names its RES mask subdirectory (--res-masks DIR/<id>/)."""
+    route: Annotated[str | None, Choice(ROUTES)] = None
+    """The route selected when the page opens (default: lifted where the inputs allow it,
+    else lifted_fieldless, else threshold). Every route the inputs allow stays selectable."""
+    max_splats: Annotated[int, AT_LEAST_1] = 2_000_000
+    """Most Gaussians sent to the browser; a bigger scene is sent as its most opaque and
+    largest Gaussians (answers are always computed on all of them)."""
+
+
+@dataclass
+class Answer:
+    """A prompt's answer on one route (or a provisional step of it)."""
+
+    prompt: str
+    route: str
+    selected: np.ndarray  # [G] bool
+    label: str  # what answered, for the page: "the paper's OSH (cached)", "lifted, 12 of 48 views"
+    final: bool = True
+    plane: Hyperplane | None = None  # the paper's routes and the field's provisional answer
+    lifted: LiftedAnswer | None = None  # the lifted routes
+    seconds: float = 0.0
+    views_done: int = 0
+    views_total: int = 0
+
+    @property
+    def count(self) -> int:
+        return int(self.selected.sum())
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.prompt, self.route)
+
+
+class Cancelled(Exception):
+    """The answer was superseded (a new prompt from the same page) or the viewer stopped."""
+
+
+@dataclass
+class Control:
+    """How a running answer talks back: its partial answers and progress, and whether it
+    should stop. `pause` is called between steps (the worker lets an interactive render in)."""
+
+    cancelled: threading.Event = field(default_factory=threading.Event)
+    partial: Callable[[Answer], None] = lambda a: None
+    progress: Callable[[int, int, str], None] = lambda done, total, what: None
+    pause: Callable[[], None] = lambda: None
+    #: Seconds between two partial answers of a lifted route (each costs a vote).
+    partial_every: float = 0.5
+
+    def check(self) -> None:
+        if self.cancelled.is_set():
+            raise Cancelled()
+
+
+class ControlReport:
+    """A stage `Report` that reports to a Control, stops a cancelled answer between steps
+    and lets the worker pause there."""
+
+    def __init__(self, control: Control):
+        self.control = control
+
+    def log(self, message: str) -> None:
+        pass
+
+    def progress(self, items, label, length=None, show=None):  # noqa: ANN001, ANN201
+        items = list(items) if length is None else items
+        total = len(items) if length is None else length
+        c = self.control
+        for i, item in enumerate(items):
+            c.check()
+            c.pause()
+            c.progress(i, total, label)
+            yield item
+        c.check()
+        c.progress(total, total, label)
+
+
+@dataclass
+class MaskView:
+    """What the viewer shows at a camera: the RGB render, the prompt's mask, the overlay."""
+
+    camera: Camera
+    rgb: np.ndarray  # [H, W, 3] uint8
+    mask: np.ndarray  # [H, W] bool
+    overlay: np.ndarray  # [H, W, 3] uint8, as goi render-mask writes <view>.overlay.png
+
+
+def load_prompt_table(path: Path) -> dict[str, str]:
+    """A room's prompts.json -> {text: id}."""
+    raw = read_json(path, "does not exist (--prompts)")
+    if not isinstance(raw, list):
+        raise GoiError(f"{path}: expected a JSON list of {{id, text}} prompts")
+    table: dict[str, str] = {}
+    for i, p in enumerate(raw):
+        if not (
+            isinstance(p, dict) and isinstance(p.get("id"), str) and isinstance(p.get("text"), str)
+        ):
+            raise GoiError(f"{path}: prompt {i} is not an object with string 'id' and 'text'")
+        text = check_prompt(p["text"], f"{path}: prompt {i} 'text'")
+        from stages.query.prompts import check_plain_name
+
+        check_plain_name(p["id"], f"{path}: prompt {i} 'id'", "a subdirectory of --res-masks")
+        table.setdefault(text, p["id"])
+    return table
+
+
+class ViewSession:
+    """Everything loaded and checked once, before the server starts; answers on demand.
+
+    Thread-safe for one worker computing answers and other threads reading the history and
+    rendering masks: answers are immutable once made, and the history is locked."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        field_path: Path | None,
+        sources: PromptSources,
+        run: ViewRun,
+        report: Report = SILENT,
+    ):
+        self.scene = scene
+        self.field_path = Path(field_path) if field_path is not None else None
+        self.sources = sources
+        self.run = run
+        self.out = Path(run.out)
+        self.hp = HyperplaneParams()
+        self.lp = LiftParams(lift=True)
+        if sources.res_masks is not None and sources.res_index is not None:
+            raise GoiError("give one of --res-masks DIR or --res-index FILE, not both")
+        if sources.prompt_id is not None:
+            raise GoiError("--prompt-id: goi view takes many prompts; give --prompts FILE")
+        check_output_name(self.out, "--out")
+        if self.out.exists() and not self.out.is_dir():
+            raise GoiError(f"--out: {self.out} is a file; goi view writes a directory")
+        inputs = [scene.ply_path, *scene.camera_files, field_path, sources.text_embeddings,
+                  sources.bundle, sources.res_masks, sources.res_index, run.prompts]  # fmt: skip
+        refuse_inputs({"--out": [self.out]}, inputs)
+        self.prompt_ids = load_prompt_table(run.prompts) if run.prompts else {}
+        self.bundle: Bundle | None = load_bundle(sources.bundle) if sources.bundle else None
+        self.index = None
+        if sources.res_index is not None:
+            self.index, self.bundle = checked_index(sources.res_index, sources.bundle, scene)
+        elif self.bundle is not None and self.bundle.has_res:
+            self.bundle.check_res()
+        if sources.res_masks is not None and not Path(sources.res_masks).is_dir():
+            raise GoiError(f"--res-masks: {sources.res_masks} is not a directory")
+        if run.route is not None and self.routes()[run.route] is not None:
+            raise GoiError(f"--route: {run.route} is not possible here: {self.routes()[run.route]}")
+        self.default_route()  # inputs that can answer nothing are refused before the field loads
+        self.field: Field | None = None
+        self.renderer: SemanticRenderer | None = None
+        if self.field_path is not None:
+            report.log(f"view: loading the field {self.field_path}")
+            self.field = load_field_for(self.field_path, scene.ply_digest())
+            self.renderer = SemanticRenderer(scene.gaussians, self.field)
+            self.rast = self.renderer.rast
+        else:
+            self.rast = Rasterizer.from_gaussians(scene.gaussians)
+        if sources.text_embeddings is not None:  # read once: a bad file is refused now
+            from stages.query.prompts import load_text_embeddings
+
+            self.embeddings = load_text_embeddings(sources.text_embeddings)
+            if self.field is not None:
+                dim = next(iter(self.embeddings.values())).size
+                if dim != self.field.codebook.shape[1]:
+                    raise GoiError(
+                        f"{sources.text_embeddings}: embeddings of {dim} dimensions, the field's "
+                        f"codebook {self.field.codebook.shape[1]}; they must share one space"
+                    )
+        self._history: dict[tuple[str, str], Answer] = {}
+        self._order: list[tuple[str, str]] = []
+        self._lock = threading.Lock()
+        self._owner_lock = threading.Lock()
+
+    # -- what the inputs allow ------------------------------------------------------------
+
+    @property
+    def has_text(self) -> bool:
+        return self.sources.text_embeddings is not None or (
+            self.bundle is not None and "text_encoder" in self.bundle.manifest
+        )
+
+    @property
+    def has_res(self) -> bool:
+        return (
+            self.sources.res_masks is not None
+            or self.index is not None
+            or (self.bundle is not None and self.bundle.has_res)
+        )
+
+    def routes(self) -> dict[str, str | None]:
+        """Each route: None when the inputs allow it, else what it needs."""
+        need_field = None if self.field_path is not None else "needs --field (goi fit-field)"
+        need_text = (
+            None if self.has_text else "needs --text-embeddings or a --bundle with a text encoder"
+        )
+        need_res = None if self.has_res else (
+            "needs RES masks: --res-masks DIR, --res-index FILE with its --bundle, or a --bundle "
+            "with a RES"
+        )  # fmt: skip
+        return {
+            "osh": need_field or need_text or need_res,
+            "threshold": need_field or need_text,
+            "lifted": need_field or need_text or need_res,
+            "lifted_fieldless": need_res,
+        }
+
+    def default_route(self) -> str:
+        if self.run.route is not None:
+            return self.run.route
+        allowed = [r for r, why in self.routes().items() if why is None]
+        for r in ("lifted", "lifted_fieldless", "threshold"):
+            if r in allowed:
+                return r
+        raise GoiError(
+            "goi view has nothing to answer a prompt with: give --field with --text-embeddings "
+            "(or a --bundle with a text encoder), or RES masks (--res-masks, --res-index, or a "
+            "--bundle with a RES)"
+        )
+
+    def suggestions(self) -> list[str]:
+        return list(self.prompt_ids)
+
+    # -- answering ------------------------------------------------------------------------
+
+    def check_prompt(self, text: str) -> str:
+        t = check_prompt(text, "prompt")
+        if len(t) > MAX_PROMPT:
+            raise GoiError(f"prompt: {len(t)} characters; the viewer takes at most {MAX_PROMPT}")
+        return t
+
+    def text(self, prompt: str) -> tuple[np.ndarray, str]:
+        """The prompt's embedding and where it came from, as goi select makes it."""
+        assert self.field is not None
+        dim = self.field.codebook.shape[1]
+        if self.sources.text_embeddings is not None or self.bundle is None:
+            return text_embedding(prompt, dim, self.sources.text_embeddings, None)
+        vec = self.bundle.encode_text(prompt)
+        if vec.shape != (dim,):
+            raise GoiError(
+                f"{self.sources.bundle}: the prompt embedding has {vec.size} dimensions but the "
+                f"field's codebook has {dim}; the text and image features must share one space"
+            )
+        return vec.astype(np.float32), f"bundle:{self.bundle.name}"
+
+    def res(self, prompt: str, rast: Rasterizer) -> ResSource:
+        """The prompt's RES masks, as goi select takes them (mask files in the prompt's own
+        subdirectory, named by --prompts, else the RES index, else the bundle's RES)."""
+        if self.sources.res_masks is not None:
+            return ResFiles(self.sources.res_masks, self.prompt_ids.get(prompt), prompt)
+        if self.index is not None:
+            assert self.bundle is not None
+            return ResIndexed(self.index, self.bundle, prompt, self.scene)
+        if self.bundle is not None and self.bundle.has_res:
+            return ResModel(self.bundle, prompt, rast)
+        raise GoiError(
+            "no RES source: give --res-masks, --res-index with --bundle, or a bundle with a RES"
+        )
+
+    def cached_plane(self, prompt: str) -> Hyperplane | None:
+        """The prompt's OSH from OUT/hyperplanes.h5, when it was fitted on this field."""
+        path = self.out / "hyperplanes.h5"
+        if self.field is None or self.field_path is None or not path.is_file():
+            return None
+        plane = read_hyperplanes(path).get(prompt)
+        if plane is None or plane.info.get("field_sha256") != self._field_sha:
+            return None
+        n, dim = self.field.codebook.shape
+        return plane if plane.scores.size == n and plane.W.shape == (dim,) else None
+
+    @property
+    def _field_sha(self) -> str:
+        assert self.field_path is not None
+        if not hasattr(self, "_field_sha_value"):
+            self._field_sha_value = sha256_file(self.field_path)
+        return self._field_sha_value
+
+    def field_answer(self, prompt: str) -> Answer | None:
+        """The field's answer, at once: the prompt's cached OSH, else the fixed-threshold
+        plane (None without a field or a text embedding)."""
+        if self.field is None or not self.has_text:
+            return None
+        t0 = time.perf_counter()
+        plane = self.cached_plane(prompt)
+        if plane is not None:
+            route, label = "osh", "the paper's OSH (cached)"
+        else:
+            text, _ = self.text(prompt)
+            plane = threshold_plane(prompt, text, self.field.unit_codebook(), THRESHOLD)
+            route, label = "threshold", "fixed threshold"
+        sel = select(self.field, plane)
+        return Answer(prompt, route, sel, label, True, plane, seconds=time.perf_counter() - t0)
+
+    def answer(self, prompt: str, route: str, control: Control | None = None) -> Answer:
+        """The route's answer (see the module doc); partial answers go to control.partial."""
+        control = control or Control()
+        why = self.routes().get(route, f"unknown route {route!r}")
+        if why is not None:
+            raise GoiError(f"route {route}: {why}")
+        prompt = self.check_prompt(prompt)
+        t0 = time.perf_counter()
+        report = ControlReport(control)
+        if route in ("osh", "threshold"):
+            ans = self._paper_answer(prompt, route, report)
+        else:
+            ans = self._lifted_answer(prompt, route, control, report, t0)
+        ans.seconds = time.perf_counter() - t0
+        with self._lock:
+            if ans.key not in self._history:
+                self._order.append(ans.key)
+            self._history[ans.key] = ans
+        return ans
+
+    def _paper_answer(self, prompt: str, route: str, report: Report) -> Answer:
+        assert self.field is not None and self.renderer is not None and self.field_path
+        text, text_source = self.text(prompt)
+        if route == "threshold":
+            plane = threshold_plane(prompt, text, self.field.unit_codebook(), THRESHOLD)
+            return Answer(prompt, route, select(self.field, plane), "fixed threshold", True, plane)
+        masks = self.res(prompt, self.rast)
+        make_dir(self.out, "--out")
+        try:
+            plane, cached = fit_hyperplane(
+                self.renderer, self.field_path, self.scene.views("train"), prompt, text,
+                text_source, masks, self.hp, HyperplaneRun(self.out / "hyperplanes.h5"), report,
+            )  # fmt: skip
+        except NothingFound:
+            none = np.zeros(self.scene.gaussians.count, bool)
+            return Answer(prompt, route, none, "the paper's OSH: the RES found nothing", True)
+        label = "the paper's OSH (cached)" if cached else "the paper's OSH"
+        return Answer(prompt, route, select(self.field, plane), label, True, plane)
+
+    def _lifted_answer(
+        self, prompt: str, route: str, control: Control, report: Report, t0: float
+    ) -> Answer:
+        renderer: SemanticRenderer | Rasterizer
+        if route == "lifted":
+            assert self.renderer is not None
+            renderer, (text, _) = self.renderer, self.text(prompt)
+        else:
+            renderer, text = self.rast, None
+        masks = self.res(prompt, self.rast)
+        last = [0.0]
+
+        def partial(make: Callable[[], LiftedAnswer], done: int, total: int) -> None:
+            now = time.perf_counter()
+            if done < total and now - last[0] >= control.partial_every:
+                lifted = make()
+                label = f"{ROUTE_NAMES[route]}, {done} of {total} views"
+                control.partial(
+                    Answer(prompt, route, lifted.selected.copy(), label, False,
+                           lifted=lifted, seconds=now - t0, views_done=done, views_total=total)
+                )  # fmt: skip
+                last[0] = time.perf_counter()
+
+        ans = answer_prompt(
+            self.scene, renderer, prompt, text, masks, self.hp, self.lp, report, partial=partial
+        )
+        n = len(ans.views)
+        label = f"{ROUTE_NAMES[route]}, {n} views"
+        return Answer(prompt, route, ans.selected, label, True, lifted=ans, views_done=n,
+                      views_total=n)  # fmt: skip
+
+    # -- history --------------------------------------------------------------------------
+
+    def history(self) -> list[Answer]:
+        with self._lock:
+            return [self._history[k] for k in self._order]
+
+    def cached(self, prompt: str, route: str) -> Answer | None:
+        with self._lock:
+            return self._history.get((prompt, route))
+
+    # -- the 2D answer at a camera -------------------------------------------------------
+
+    def mask_at(self, answer: Answer | None, cam: Camera) -> MaskView:
+        """The RGB render, the answer's mask and the overlay at `cam`: what goi render-mask
+        writes for that camera (for the paper's routes the field's pixels decoded against the
+        plane; for the lifted routes the 3D selection seen from the camera)."""
+        if answer is not None and answer.plane is not None and answer.lifted is None:
+            assert self.renderer is not None
+            view = self.renderer.render(cam, with_rgb=True)
+            assert view.rgb is not None
+            m = mask_of(answer.plane, view)
+            rgb = view.rgb
+        else:
+            rgb = self.rast.render_rgb(cam).image
+            none = np.zeros(self.scene.gaussians.count, bool)
+            m = lifted_masks(self.rast, none if answer is None else answer.selected, [cam])[
+                cam.name
+            ]
+        rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+        return MaskView(cam, rgb8, m, overlay(rgb, m))
+
+    # -- exports --------------------------------------------------------------------------
+
+    def answer_dir(self, answer: Answer) -> Path:
+        return self.out / safe_name(answer.prompt) / answer.route
+
+    def export(self, answer: Answer, what: str, color: str = "red") -> list[Path]:
+        """Write one export of a final answer under OUT/<prompt>/<route>/, atomically, with
+        the CLI's artifacts and schemas; a file goi view did not write is never replaced."""
+        if what not in EXPORTS:
+            raise GoiError(f"export: {what!r} is not one of {', '.join(EXPORTS)}")
+        if not answer.final:
+            raise GoiError("export: the answer is still being refined; wait for it to finish")
+        d = self.answer_dir(answer)
+        name = safe_name(answer.prompt)
+        mode = _mode(answer)
+        if what == "selection":
+            files = [d / "selection.h5"]
+        elif what == "masks":
+            cams = self.scene.views("test") or self.scene.cameras
+            from stages.query.masks import mask_files
+
+            files = mask_files(d / "masks", cams, True)
+        else:
+            suffix = "" if what == "subset" else f".{what}"
+            files = [d / f"{name}{suffix}.ply"]
+            if what == "highlight":
+                parse_color(color, "highlight colour")
+        with self._owner_lock:
+            owned = self._owned()
+            for f in files:
+                self._check_owned(f, owned)
+            make_dir(d, "--out")
+            if what == "selection":
+                self._write_selection(answer, files[0], mode)
+            elif what == "masks":
+                self._write_masks(answer, d / "masks", cams)
+            else:
+                edit = PlyEditParams(
+                    invert=what == "invert", highlight=color if what == "highlight" else None
+                )
+                if what == "subset" and not answer.selected.any():
+                    raise GoiError("export: the answer selects no Gaussian; there is no subset")
+                sel = Selection(answer.selected, answer.prompt, mode, self.scene.ply_digest())
+                export_ply(self.scene.gaussians, sel, self.scene.ply_digest(), edit,
+                           PlyExportRun(files[0], force=True))  # fmt: skip
+            for f in files:
+                owned[str(f.relative_to(self.out))] = sha256_file(f)
+            write_json(self.out / OWNER, {"written_by": "goi view", "files": owned}, force=True)
+        return files
+
+    def _write_selection(self, answer: Answer, path: Path, mode: str) -> None:
+        if answer.lifted is not None:
+            write_lifted_selection(path, answer.lifted, self.scene, self.field_path, self.lp,
+                                   True, answer.prompt)  # fmt: skip
+            return
+        inputs = {"ply": self.scene.ply_digest()}
+        if self.field_path is not None:
+            inputs.update(input_digest("field", self.field_path))
+        write_selection(path, answer.selected, answer.prompt, mode, self.scene.ply_digest(),
+                        inputs, force=True)  # fmt: skip
+
+    def _write_masks(self, answer: Answer, d: Path, cams: list[Camera]) -> None:
+        if answer.lifted is None and answer.plane is not None:
+            assert self.renderer is not None
+            # the answer's own plane (a threshold answer's is the threshold plane already)
+            render_masks(self.renderer, answer.plane, cams, MaskParams(), MaskRun(d, force=True))
+            return
+        write_masks(self.rast, answer.selected, cams, d, True, True)
+
+    def _owned(self) -> dict[str, str]:
+        path = self.out / OWNER
+        if not path.is_file():
+            return {}
+        raw = read_json(path)
+        files = raw.get("files") if isinstance(raw, dict) else None
+        if not isinstance(files, dict):
+            raise GoiError(f"{path}: not goi view's list of the files it wrote")
+        return {str(k): str(v) for k, v in files.items()}
+
+    def _check_owned(self, f: Path, owned: dict[str, str]) -> None:
+        if not (f.exists() or f.is_symlink()):
+            return
+        rel = str(f.relative_to(self.out))
+        if f.is_symlink() or not f.is_file() or owned.get(rel) != sha256_file(f):
+            raise GoiError(
+                f"{f}: exists and was not written by goi view (or was changed since); goi view "
+                "never replaces such a file: move it, or give another --out"
+            )
+
+    def save_camera(self, cam: Camera) -> Path:
+        """The browser's camera as an INRIA cameras.json under OUT/cameras/, for
+        `goi render-mask --camera-file`."""
+        with self._owner_lock:
+            owned = self._owned()
+            d = make_dir(self.out / "cameras", "--out")
+            taken = {p.stem for p in d.glob("*.json")}
+            i = 1
+            while f"camera-{i:03d}" in taken:
+                i += 1
+            name = f"camera-{i:03d}"
+            path = d / f"{name}.json"
+            c = Camera(name, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cam.R, cam.t)
+            write_inria(path, [c])
+            owned[str(path.relative_to(self.out))] = sha256_file(path)
+            write_json(self.out / OWNER, {"written_by": "goi view", "files": owned}, force=True)
+        return path
+
+
+def _mode(answer: Answer) -> str:
+    """The selection artifact's mode, as goi select records it."""
+    if answer.lifted is not None:
+        return "lifted"
+    return "threshold" if answer.route == "threshold" else "hyperplane"
+
+
+def describe(answer: Answer) -> dict:
+    """A JSON-able summary of an answer, for the page and the benchmarks."""
+    return {
+        "prompt": answer.prompt,
+        "route": answer.route,
+        "label": answer.label,
+        "count": answer.count,
+        "final": answer.final,
+        "seconds": round(answer.seconds, 4),
+        "views": [answer.views_done, answer.views_total],
+    }
