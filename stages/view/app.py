@@ -352,7 +352,7 @@ class Page:
             self._apply(ans.selected)
             done = "" if ans.final else " (refining...)"
             self._say(
-                f"<b>{ans.count:,}</b> Gaussians &middot; {_e(ans.label)}{done}<br>"
+                f"<b>{ans.count:,}</b> Gaussians &middot; <span>{_e(ans.label)}</span>{done}<br>"
                 f"<i>{_e(ans.prompt)}</i> &middot; {ans.seconds:.2f} s"
             )
             if ans.final:

@@ -75,8 +75,9 @@ class ViewRun:
     host: str = "127.0.0.1"
     """Address to serve on. Anything but a loopback address lets whoever reaches the port ask
     prompts and write exports."""
-    port: Annotated[int, Range(ge=1, le=65535)] = 8080
-    """Port to serve on."""
+    port: Annotated[int, Range(ge=0, le=65535)] = 8080
+    """Port to serve on (0: any free port; a busy port is skipped for the next free one, and
+    the address printed is the one served)."""
     prompts: Path | None = None
     """A room's prompts.json ([{id, text}, ...]): its prompts are offered in the page, and a
     prompt's id names its RES mask subdirectory (--res-masks DIR/<id>/)."""

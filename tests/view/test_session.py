@@ -48,7 +48,8 @@ def _session(room, out, field=True, **sources) -> ViewSession:
 def _cli(room, *args, field=True):
     s, run, root = room
     base = ["--scene", str(s["scene"]), "--prompt", PROMPT, "--text-embeddings",
-            str(root / "text.json"), "--res-masks", str(root / "res"), "--prompt-id", f"o{OBJ}"]  # fmt: skip
+            str(root / "text.json"), "--res-masks", str(root / "res"),
+            "--prompt-id", f"o{OBJ}"]  # fmt: skip
     if field:
         base += ["--field", str(run / "field.h5")]
     assert main([args[0], *base, *args[1:]]) == 0
@@ -139,8 +140,11 @@ def test_the_mask_at_a_camera_is_what_render_mask_writes(room, tmp_path, route):
     shown = session.mask_at(ans, cam)
     assert shown.mask.any() and shown.overlay.shape == (80, 120, 3)
     camera_file = session.save_camera(cam)
-    extra = ["--lift"] if route == "lifted" else ["--hyperplanes", str(tmp_path / "view" / "hyperplanes.h5")]  # fmt: skip
-    _cli(room, "render-mask", "--camera-file", str(camera_file), "--out", str(tmp_path / "m"), *extra)
+    planes = tmp_path / "view" / "hyperplanes.h5"
+    extra = ["--lift"] if route == "lifted" else ["--hyperplanes", str(planes)]
+    _cli(
+        room, "render-mask", "--camera-file", str(camera_file), "--out", str(tmp_path / "m"), *extra
+    )
     name = camera_file.stem
     np.testing.assert_array_equal(read_mask(tmp_path / "m" / f"{name}.png"), shown.mask)
     import cv2
@@ -216,7 +220,10 @@ def test_bad_view_inputs_exit_2_before_serving(fitted, tmp_path, capsys):
     (tmp_path / "file").write_text("x")
     cases = [
         ([], "nothing to answer a prompt with"),
-        (["--field", str(run / "field.h5"), "--route", "lifted"], "--route: lifted is not possible"),
+        (
+            ["--field", str(run / "field.h5"), "--route", "lifted"],
+            "--route: lifted is not possible",
+        ),
         (["--res-masks", str(tmp_path), "--out", str(tmp_path / "file")], "--out"),
         (["--res-masks", str(tmp_path / "nope")], "--res-masks"),
         (["--res-masks", str(tmp_path), "--prompts", str(tmp_path / "file")], "file"),
@@ -242,7 +249,9 @@ def test_a_prompts_file_is_checked(tmp_path):
         (tmp_path / "p.json").write_text(json.dumps(raw))
         with pytest.raises(GoiError, match=message):
             load_prompt_table(tmp_path / "p.json")
-    (tmp_path / "p.json").write_text(json.dumps([{"id": "p1", "text": " a "}, {"id": "p2", "text": "a"}]))
+    (tmp_path / "p.json").write_text(
+        json.dumps([{"id": "p1", "text": " a "}, {"id": "p2", "text": "a"}])
+    )
     assert load_prompt_table(tmp_path / "p.json") == {"a": "p1"}
 
 

@@ -1,0 +1,147 @@
+"""goi view end to end in a real browser: playwright drives Debian's chromium (installed by
+scripts/setup.sh) on `goi view` serving the demo scene. A prompt typed into the page is
+answered; the selection the page exports is goi select's, and the canvas changes inside the
+selected object's mask and hardly outside it."""
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from goi_cli.main import main
+from stages.query.prompts import safe_name
+from stages.query.selection import load_selection
+from stages.scene.images import read_mask
+
+DEMO = Path(__file__).resolve().parents[2] / "goi_cli" / "demo_scene"
+PROMPT, PROMPT_ID = "orange basketball", "p08"
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+#: Chromium as root, headless, with a software WebGL (no GPU here) and no background traffic
+#: (this machine has no network: those connections would only be refused).
+ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync",
+        "--no-first-run"]  # fmt: skip
+
+# In CI (CI set) the browser must be there: scripts/setup.sh installs it, and a skipped
+# end-to-end test would pass unseen.
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        CHROMIUM is None and not os.environ.get("CI"),
+        reason="no chromium (scripts/setup.sh installs it)",
+    ),
+]
+
+
+@pytest.fixture
+def served(tmp_path):
+    """`goi view` on the demo scene, field-free (its RES mask files), on a free port."""
+    out = tmp_path / "view"
+    cmd = [sys.executable, "-m", "goi_cli", "view", "--scene", str(DEMO),
+           "--res-masks", str(DEMO / "res"), "--prompts", str(DEMO / "prompts.json"),
+           "--out", str(out), "--port", "0", "--for-seconds", "600"]  # fmt: skip
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)
+    url = None
+    start = time.monotonic()
+    assert proc.stderr is not None
+    lines = []
+    while time.monotonic() - start < 120:
+        line = proc.stderr.readline()
+        lines.append(line)
+        m = re.search(r"goi view: (http://\S+)", line)
+        if m:
+            url = m.group(1)
+            break
+        if proc.poll() is not None:
+            break
+    try:
+        assert url is not None, f"goi view did not start: {''.join(lines)}"
+        yield url, out
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def _prompt_box(page):
+    return page.locator("xpath=//*[text()='Prompt']/following::input[1]")
+
+
+def _canvas(page) -> np.ndarray:
+    """A screenshot once the page has settled (the splats fade in when they arrive): two in a
+    row that differ by less than 0.2 grey levels on average."""
+    import cv2
+
+    last = None
+    for _ in range(60):
+        png = page.screenshot()
+        now = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(np.float32)
+        if last is not None and np.abs(now - last).mean() < 0.2:
+            return now
+        last = now
+        time.sleep(1.0)
+    raise AssertionError("the page never settled")
+
+
+def test_a_prompt_typed_in_the_page_lights_up_goi_selects_answer(served, tmp_path):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    url, out = served
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        page.goto(url)
+        _prompt_box(page).wait_for(timeout=60_000)
+        page.get_by_text("Rest the camera").wait_for(state="detached", timeout=120_000)
+        before = _canvas(page)
+        box = _prompt_box(page)
+        box.fill(PROMPT)
+        box.press("Enter")
+        page.get_by_text(re.compile(r"^lifted, field-free, \d+ views$")).wait_for(timeout=180_000)
+        after = _canvas(page)
+        # the server's selection, through the page's own export button
+        page.get_by_text("Export the answer").click()
+        page.get_by_role("button", name="selection.h5").click()
+        page.get_by_text(re.compile("wrote .*selection.h5")).wait_for(timeout=60_000)
+        page.get_by_role("button", name="Save camera").click()
+        page.get_by_text(re.compile("camera saved")).wait_for(timeout=60_000)
+        panel = page.get_by_text("goi view", exact=True).bounding_box()
+        warning = page.get_by_text("Software WebGL").bounding_box()
+        page.screenshot(path=str(tmp_path / "page.png"))
+        browser.close()
+    exported = load_selection(out / safe_name(PROMPT) / "lifted_fieldless" / "selection.h5")
+    args = ["--scene", str(DEMO), "--prompt", PROMPT, "--res-masks", str(DEMO / "res"),
+            "--prompt-id", PROMPT_ID, "--lift"]  # fmt: skip
+    assert main(["select", *args, "--out", str(tmp_path / "sel.h5")]) == 0
+    np.testing.assert_array_equal(exported.selected, load_selection(tmp_path / "sel.h5").selected)
+    # where the answer is, at the browser's camera (the camera file the page saved)
+    (camera,) = (out / "cameras").glob("*.json")
+    assert (
+        main(["render-mask", *args, "--camera-file", str(camera), "--out", str(tmp_path / "m")])
+        == 0
+    )
+    import cv2
+
+    small = read_mask(tmp_path / "m" / f"{camera.stem}.png")
+    h, w = before.shape[:2]
+    mask = cv2.resize(small.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+    mask = cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0  # clear of edges
+    near = cv2.dilate(small.astype(np.uint8), np.ones((5, 5), np.uint8))
+    near = cv2.resize(near, (w, h), interpolation=cv2.INTER_NEAREST) > 0
+    shown = np.ones((h, w), bool)  # the canvas not covered by the panel or the warning
+    shown[:, int(panel["x"]) - 12 :] = False
+    if warning is not None:
+        shown[
+            : int(warning["y"] + warning["height"]) + 12,
+            : int(warning["x"] + warning["width"]) + 12,
+        ] = False
+    diff = np.abs(after - before).mean(axis=2)
+    inside, outside = diff[mask & shown], diff[~near & shown]
+    assert inside.size > 2000 and outside.size > 100_000
+    assert inside.mean() > 20, inside.mean()
+    assert outside.mean() < 0.1 * inside.mean(), (outside.mean(), inside.mean())

@@ -1,0 +1,190 @@
+"""What the browser is sent: splats (held to a plain per-Gaussian reference and to viser's own
+packing), the chunks a highlight resends, the browser's camera as a goi Camera and back, and
+the worker's cancel and priority rules."""
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from stages.scene.cameras import Camera
+from stages.scene.gaussians import load_ply
+from stages.scene.rotation import quat_to_rotmat
+from stages.view.cameras import browser_camera, browser_pose, render_size
+from stages.view.session import Cancelled, Control
+from stages.view.splats import (
+    covariances,
+    morton_order,
+    pack,
+    plan,
+    rgba_words,
+    scene_splats,
+)
+from stages.view.worker import Gate, Worker
+from tests.helpers import random_vertex, write_ply
+
+
+@pytest.fixture
+def gaussians(tmp_path):
+    return load_ply(write_ply(tmp_path / "g.ply", random_vertex(3000, seed=3)))
+
+
+def test_covariances_equal_a_plain_loop(gaussians):
+    g = gaussians
+    covs = covariances(g.quats, g.scales)
+    for i in range(0, g.count, 97):
+        R = quat_to_rotmat(g.quats[i])
+        ref = R @ np.diag(g.scales[i].astype(np.float64) ** 2) @ R.T
+        np.testing.assert_allclose(covs[i], ref, rtol=1e-5, atol=1e-8)
+
+
+def test_pack_is_vivers_buffer(gaussians):
+    viser = pytest.importorskip("viser")
+    s = scene_splats(gaussians, 10**9)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        h = server.scene.add_gaussian_splats(
+            "/g", centers=s.centers, covariances=s.covariances, rgbs=s.rgbs, opacities=s.opacities
+        )
+        np.testing.assert_array_equal(pack(s.centers, s.covariances, s.rgbs, s.opacities), h.buffer)
+    finally:
+        server.stop()
+
+
+def test_scene_splats_keep_the_most_visible_when_capped(gaussians):
+    g = gaussians
+    whole = scene_splats(g, 10**9)
+    assert sorted(whole.index.tolist()) == list(range(g.count))
+    capped = scene_splats(g, 500)
+    assert capped.count == 500 and capped.n_scene == g.count
+    s = np.sort(g.scales, axis=1)
+    imp = g.opacities * s[:, 1] * s[:, 2]
+    assert imp[capped.index].min() >= np.sort(imp)[-500] - 1e-12
+    # Morton order: a permutation, nearby points close in it
+    order = morton_order(g.means)
+    assert sorted(order.tolist()) == list(range(g.count))
+
+
+def test_a_highlight_resends_only_the_chunks_it_touches(gaussians):
+    s = scene_splats(gaussians, 10**9)
+    chunks = s.chunks(500)
+    shown = [b"base"] * len(chunks)
+    sel = np.zeros(s.n_scene, bool)
+    sel[s.index[chunks[2]][:40]] = True  # selected Gaussians, all in the third chunk
+    red = np.array([1.0, 0.0, 0.0], np.float32)
+    p = plan(s, chunks, shown, sel, "tint", red)
+    assert list(p.chunk_words) == [2] and p.scene_visible and p.overlay.size == 0
+    words = p.chunk_words[2].view(np.uint8).reshape(-1, 4)
+    assert (words[:40, 0] >= s.rgbs[chunks[2]][:40, 0] * 255 - 1).all()
+    np.testing.assert_array_equal(
+        p.chunk_words[2][40:], rgba_words(s.rgbs[chunks[2]], s.opacities[chunks[2]])[40:]
+    )
+    # the same again sends nothing; another mode resends the same chunk; nothing restores it
+    assert plan(s, chunks, p.chunk_keys, sel, "tint", red).chunk_words == {}
+    hide = plan(s, chunks, p.chunk_keys, sel, "hide", red)
+    assert list(hide.chunk_words) == [2]
+    assert (hide.chunk_words[2][:40].view(np.uint8).reshape(-1, 4)[:, 3] == 0).all()
+    back = plan(s, chunks, hide.chunk_keys, None, "tint", red)
+    np.testing.assert_array_equal(
+        back.chunk_words[2], rgba_words(s.rgbs[chunks[2]], s.opacities[chunks[2]])
+    )
+    iso = plan(s, chunks, back.chunk_keys, sel, "isolate", red)
+    assert not iso.scene_visible and iso.chunk_words == {}
+    np.testing.assert_array_equal(iso.overlay, np.flatnonzero(sel))
+
+
+def test_tint_draws_selected_gaussians_the_browser_was_not_sent(gaussians):
+    s = scene_splats(gaussians, 1000)
+    sel = np.ones(s.n_scene, bool)
+    p = plan(s, s.chunks(), [b"base"] * len(s.chunks()), sel, "tint", np.ones(3, np.float32))
+    unsent = np.setdiff1d(np.arange(s.n_scene), s.index)
+    np.testing.assert_array_equal(p.overlay, unsent)
+    assert p.overlay_tinted
+
+
+def test_browser_camera_round_trip():
+    R = quat_to_rotmat(np.array([0.9, 0.1, -0.3, 0.2]))
+    cam = Camera("c", 640, 400, 500.0, 500.0, 320, 200, R, np.array([0.1, -0.2, 2.0]))
+    wxyz, pos, fov = browser_pose(cam)
+    back = browser_camera("c", wxyz, pos, fov, 640, 400)
+    np.testing.assert_allclose(back.R, cam.R, atol=1e-9)
+    np.testing.assert_allclose(back.t, cam.t, atol=1e-9)
+    assert math.isclose(back.fy, 500.0) and back.cx == 320 and back.cy == 200
+    assert render_size(1280, 800) == (640, 400) and render_size(300, 900) == (213, 640)
+
+
+def test_browser_camera_refuses_a_broken_pose():
+    from stages.core.errors import GoiError
+
+    with pytest.raises(GoiError):
+        browser_camera("c", [np.nan, 0, 0, 1], [0, 0, 0], 1.0, 10, 10)
+    with pytest.raises(GoiError):
+        browser_camera("c", [1, 0, 0, 0], [0, 0, 0], 4.0, 10, 10)
+
+
+def test_worker_runs_in_order_and_a_page_supersedes_only_its_own_job():
+    errors = []
+    w = Worker(lambda job, e: errors.append(e))
+    ran = []
+    release = threading.Event()
+
+    def slow(name):
+        def run(control):
+            for _ in range(100):
+                control.check()
+                if release.wait(0.01):
+                    break
+            ran.append(name)
+
+        return run
+
+    a1 = w.submit(1, slow("a1"), Control())
+    b1 = w.submit(2, slow("b1"), Control())
+    a2 = w.submit(1, slow("a2"), Control())  # page 1 asks again: its first job is cancelled
+    release.set()
+    for j in (a1, b1, a2):
+        assert j.done.wait(10)
+    assert ran == ["b1", "a2"] and not errors
+    w.stop()
+
+
+def test_worker_reports_errors_and_carries_on():
+    errors = []
+    w = Worker(lambda job, e: errors.append((job.owner, str(e))))
+
+    def boom(control):
+        raise ValueError("bad")
+
+    j = w.submit(7, boom, Control())
+    ok = w.submit(8, lambda control: None, Control())
+    assert j.done.wait(5) and ok.done.wait(5)
+    assert errors == [(7, "bad")]
+    w.stop()
+    with pytest.raises(Cancelled):
+        c = Control()
+        c.cancelled.set()
+        c.check()
+
+
+def test_gate_lets_an_urgent_render_in_between_steps():
+    gate = Gate()
+    order = []
+    started = threading.Event()
+
+    def background():
+        with gate.background():
+            started.set()
+            for i in range(30):
+                time.sleep(0.01)
+                order.append(f"step{i}")
+                gate.pause()
+
+    t = threading.Thread(target=background)
+    t.start()
+    started.wait()
+    with gate.urgent():
+        order.append("urgent")
+    t.join()
+    assert "urgent" in order and order.index("urgent") < len(order) - 5
