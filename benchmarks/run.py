@@ -8,8 +8,9 @@ onnxruntime; benchmarks/models.py), res-index (the RES split per view: image sid
 side; benchmarks/models.py), lifted-index (prompts from a per-scene RES index on the dev
 room against the whole RES per view and against the paper's route; benchmarks/index.py),
 distributed (fit-field on 1 and 2 torchrun ranks against one process: memory, all_reduce
-bytes, agreement; benchmarks/distributed.py) and public-eval (the public benchmarks'
-annotation reading and metrics; benchmarks/public_eval.py).
+bytes, agreement; benchmarks/distributed.py), public-eval (the public benchmarks'
+annotation reading and metrics; benchmarks/public_eval.py) and view (goi view: Enter to the
+answer on the page's wire, the mask at a camera, the scene sent; benchmarks/view.py).
 
 Figures are measured, never asserted: tests check behaviour, this checks speed.
 """
@@ -409,6 +410,12 @@ def suite_res_index(repeat: int, tmp: Path) -> dict[str, float]:
     return run(repeat, tmp, median_s)
 
 
+def suite_view(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.view import suite_view as view
+
+    return view(repeat, tmp, median_s)
+
+
 def suite_lifted_index(repeat: int, tmp: Path) -> dict[str, float]:
     from benchmarks.index import suite_index as index
 
@@ -461,6 +468,7 @@ SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "distributed": suite_distributed,
     "res-index": suite_res_index,
     "lifted-index": suite_lifted_index,
+    "view": suite_view,
 }
 
 

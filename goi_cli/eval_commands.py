@@ -125,11 +125,15 @@ def demo_cmd(**kw) -> None:
     """Run goi end to end on the scene shipped with it: import features, initialise the
     codebook, fit the field, then query several prompts; writes masks, overlays, one PLY per
     prompt and OUT/index.html."""
-    from stages.evaluation.demo import run_demo, summary_lines
+    from stages.evaluation.demo import run_demo, summary_lines, view_command
 
     res = run_demo(build(DemoParams, kw), build(DemoRun, kw), TERMINAL)
     click.echo("\n".join(["", "goi demo made:", *summary_lines(res)]))
     click.echo(f"  page: {res.index}   (open it in a browser)")
+    click.echo(
+        "\nAsk your own prompts and see the answers in 3D, in the browser (goi view):\n"
+        f"  {view_command(res)}"
+    )
     click.echo(
         "\nOn your own scene (INRIA layout: point_cloud.ply, cameras.json, images/):\n"
         "  goi extract --scene S --from FEATURES_DIR --out work/features.h5   "

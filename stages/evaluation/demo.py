@@ -281,6 +281,24 @@ def _both(a: DemoAnswer) -> list[tuple[str, QueryResult, float | None]]:
     return out
 
 
+def view_command(res: DemoResult) -> str:
+    """The `goi view` command that shows the demo's answers in the browser."""
+    scene = _shown(DEMO_SCENE)
+    return (
+        f"goi view --scene {scene} --field {_shown(res.field)} --text-embeddings "
+        f"{scene}/text_embeddings.json --res-masks {scene}/res --prompts {scene}/prompts.json "
+        f"--out {_shown(res.field.parent / 'view')}"
+    )
+
+
+def _shown(path: Path) -> str:
+    """A path as short as it is unambiguous from here: relative below the working directory."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
 def summary_lines(res: DemoResult) -> list[str]:
     lines = []
     for a in res.answers:

@@ -23,9 +23,11 @@ from stages.semantics.field import Field
 SCHEMA = "goi.selection"
 
 
-def select(field: Field, plane: Hyperplane) -> np.ndarray:
-    """[G] bool: the Gaussians of interest."""
-    return field.seen & plane.positive[field.decode_index(field.features)]
+def select(field: Field, plane: Hyperplane, entry: np.ndarray | None = None) -> np.ndarray:
+    """[G] bool: the Gaussians of interest. `entry` [G]: field.decode_index(field.features),
+    when a caller answering many prompts keeps it (goi view)."""
+    k = field.decode_index(field.features) if entry is None else entry
+    return field.seen & plane.positive[k]
 
 
 def plane_probability(field: Field, plane: Hyperplane, entry: np.ndarray | None = None):

@@ -9,7 +9,9 @@ escaped wherever it is shown. viser is imported here only (the optional extra `g
 
 from __future__ import annotations
 
+import contextlib
 import html
+import io
 import sys
 import threading
 import time
@@ -84,7 +86,8 @@ class ViewerApp:
         import viser
 
         run = self.session.run
-        self.server = viser.ViserServer(host=run.host, port=run.port, verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: goi prints its own
+            self.server = viser.ViserServer(host=run.host, port=run.port, verbose=False)
         srv = self.server
         srv.gui.configure_theme(control_width="large", show_logo=False, dark_mode=False)
         srv.scene.set_up_direction(tuple(self.up))
@@ -108,7 +111,8 @@ class ViewerApp:
         for p in pages:
             p.close()
         if self.server is not None:
-            self.server.stop()
+            with contextlib.redirect_stdout(io.StringIO()):
+                self.server.stop()
 
     def _add_cameras(self) -> None:
         train = {c.name for c in self.session.scene.views("train")}
@@ -183,6 +187,9 @@ class Page:
         self.camera_moved = threading.Event()
         self.last_move = 0.0
         self.history_keys: dict[str, tuple[str, str]] = {}
+        #: (time.perf_counter(), answer) of every answer shown, once its messages were flushed
+        #: to the page (the benchmarks time Enter to highlight from it)
+        self.timeline: list[tuple[float, Answer]] = []
         self.mask_thread = threading.Thread(target=self._mask_loop, daemon=True)
 
     # -- building the page --------------------------------------------------------------------
@@ -296,9 +303,9 @@ class Page:
         control.progress = lambda done, total, what: self._progress(done, total)
 
         def job(control: Control) -> None:
-            if route != "lifted_fieldless":
+            if route not in ("threshold", "lifted_fieldless"):  # (threshold is the field's)
                 first = s.field_answer(prompt)
-                if first is not None and route != "threshold":
+                if first is not None:
                     label = f"the field, first: {first.label}"
                     self.show(
                         Answer(prompt, first.route, first.selected, label, False, first.plane)
@@ -357,6 +364,8 @@ class Page:
             )
             if ans.final:
                 self.bar.visible = False
+        self.client.flush()
+        self.timeline.append((time.perf_counter(), ans))
         self.camera_moved.set()  # the mask at the camera shows the new answer
 
     def _apply(self, selected: np.ndarray | None) -> None:

@@ -35,7 +35,7 @@ from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, read_hyperplanes
-from stages.query.lifted import LiftedAnswer, lifted_masks
+from stages.query.lifted import LiftedAnswer
 from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
 from stages.query.lifting import LiftParams
 from stages.query.masks import MaskParams, MaskRun, mask_of, overlay, render_masks
@@ -236,6 +236,8 @@ class ViewSession:
             self.field = load_field_for(self.field_path, scene.ply_digest())
             self.renderer = SemanticRenderer(scene.gaussians, self.field)
             self.rast = self.renderer.rast
+            # each Gaussian's codebook entry, once: a field answer is then a lookup per entry
+            self.entry = self.field.decode_index(self.field.features)
         else:
             self.rast = Rasterizer.from_gaussians(scene.gaussians)
         if sources.text_embeddings is not None:  # read once: a bad file is refused now
@@ -315,8 +317,18 @@ class ViewSession:
         """The prompt's embedding and where it came from, as goi select makes it."""
         assert self.field is not None
         dim = self.field.codebook.shape[1]
-        if self.sources.text_embeddings is not None or self.bundle is None:
-            return text_embedding(prompt, dim, self.sources.text_embeddings, None)
+        if self.sources.text_embeddings is not None:
+            if prompt not in self.embeddings:  # the CLI's own message
+                return text_embedding(prompt, dim, self.sources.text_embeddings, None)
+            vec = self.embeddings[prompt]
+            if vec.shape != (dim,):
+                raise GoiError(
+                    f"{self.sources.text_embeddings}: the prompt embedding has {vec.size} "
+                    f"dimensions but the field's codebook has {dim}"
+                )
+            return vec, f"file:{Path(self.sources.text_embeddings).name}"
+        if self.bundle is None:
+            return text_embedding(prompt, dim, None, None)  # (refused: no text source)
         vec = self.bundle.encode_text(prompt)
         if vec.shape != (dim,):
             raise GoiError(
@@ -370,7 +382,7 @@ class ViewSession:
             text, _ = self.text(prompt)
             plane = threshold_plane(prompt, text, self.field.unit_codebook(), THRESHOLD)
             route, label = "threshold", "fixed threshold"
-        sel = select(self.field, plane)
+        sel = select(self.field, plane, self.entry)
         return Answer(prompt, route, sel, label, True, plane, seconds=time.perf_counter() - t0)
 
     def answer(self, prompt: str, route: str, control: Control | None = None) -> Answer:
@@ -398,7 +410,9 @@ class ViewSession:
         text, text_source = self.text(prompt)
         if route == "threshold":
             plane = threshold_plane(prompt, text, self.field.unit_codebook(), THRESHOLD)
-            return Answer(prompt, route, select(self.field, plane), "fixed threshold", True, plane)
+            return Answer(
+                prompt, route, select(self.field, plane, self.entry), "fixed threshold", True, plane
+            )
         masks = self.res(prompt, self.rast)
         make_dir(self.out, "--out")
         try:
@@ -410,7 +424,7 @@ class ViewSession:
             none = np.zeros(self.scene.gaussians.count, bool)
             return Answer(prompt, route, none, "the paper's OSH: the RES found nothing", True)
         label = "the paper's OSH (cached)" if cached else "the paper's OSH"
-        return Answer(prompt, route, select(self.field, plane), label, True, plane)
+        return Answer(prompt, route, select(self.field, plane, self.entry), label, True, plane)
 
     def _lifted_answer(
         self, prompt: str, route: str, control: Control, report: Report, t0: float
@@ -466,11 +480,8 @@ class ViewSession:
             m = mask_of(answer.plane, view)
             rgb = view.rgb
         else:
-            rgb = self.rast.render_rgb(cam).image
-            none = np.zeros(self.scene.gaussians.count, bool)
-            m = lifted_masks(self.rast, none if answer is None else answer.selected, [cam])[
-                cam.name
-            ]
+            sel = np.zeros(self.scene.gaussians.count, bool) if answer is None else answer.selected
+            rgb, m = rgb_and_selection(self.rast, sel, cam)
         rgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
         return MaskView(cam, rgb8, m, overlay(rgb, m))
 
@@ -580,6 +591,19 @@ class ViewSession:
             owned[str(path.relative_to(self.out))] = sha256_file(path)
             write_json(self.out / OWNER, {"written_by": "goi view", "files": owned}, force=True)
         return path
+
+
+def rgb_and_selection(
+    rast: Rasterizer, selected: np.ndarray, cam: Camera
+) -> tuple[np.ndarray, np.ndarray]:
+    """The RGB render [H, W, 3] and the selection's mask [H, W] bool at `cam` in one tile walk
+    (the selection composited as a fourth colour channel): the same pixels as render_rgb and
+    lifted_masks, which walk twice (the tests hold them equal)."""
+    view = rast.view(cam)
+    colors = rast.colors(cam, view.gaussians)  # [V, 3]
+    sel = np.asarray(selected, np.float32)[view.gaussians][:, None]  # [V, 1]
+    out = rast.render_view(cam, view, np.concatenate([colors, sel], axis=1))
+    return out.image[:, :, :3], out.image[:, :, 3] > 0.5 * out.alpha
 
 
 def _mode(answer: Answer) -> str:

@@ -188,3 +188,19 @@ def test_gate_lets_an_urgent_render_in_between_steps():
         order.append("urgent")
     t.join()
     assert "urgent" in order and order.index("urgent") < len(order) - 5
+
+
+def test_one_walk_gives_render_rgb_and_lifted_masks_pixels(gaussians):
+    from stages.query.lifted import lifted_masks
+    from stages.render.rasterizer import Rasterizer
+    from stages.view.session import rgb_and_selection
+    from tests.helpers import front_camera
+
+    rast = Rasterizer.from_gaussians(gaussians)
+    cam = front_camera(96, 64)
+    sel = np.zeros(gaussians.count, bool)
+    sel[::3] = True
+    rgb, mask = rgb_and_selection(rast, sel, cam)
+    np.testing.assert_array_equal(rgb, rast.render_rgb(cam).image)
+    np.testing.assert_array_equal(mask, lifted_masks(rast, sel, [cam])[cam.name])
+    assert mask.any() and not mask.all()

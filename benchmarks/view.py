@@ -1,0 +1,288 @@
+"""goi view (suite `view`): what a page waits for, with the CLI's same-run figures beside.
+
+The page is played by a websocket client in this process (`Client`: it connects as viser's
+browser client does, reports a camera and records what arrives, with its size and time), so a
+figure is the time to the page's wire, not to a browser's drawing (which depends on its GPU).
+The dev room is ../shared/dev-room (GOI_DEV_ROOM); its field is fitted here with
+GOI_VIEW_FIELD_ITERATIONS (default 100: the answers' cost does not depend on the fit's
+quality). The RES index is built with GOI_INDEX_BUNDLE, else a tiny random Grounded-SAM
+(benchmarks/index.py): say which bundle a figure was measured with.
+
+Figures (seconds, MiB):
+  view_field_answer_s_dev_room      Enter to the field's answer (the fixed-threshold plane) lit
+                                    up: on the page's wire, median over prompts
+  cli_select_threshold_s_dev_room   baseline: `goi select --mode threshold` in process
+  view_lifted_answer_s_dev_room     Enter to the final lifted answer (with the field, from the
+                                    RES index, every indexed view) on the page's wire, median
+  cli_lifted_prompt_s_dev_room      baseline: `goi select --lift --res-index` in process
+  view_lifted_over_cli              their ratio
+  view_mask_at_camera_s_640x480_300k   the mask and RGB at a 640x480 camera (one tile walk),
+                                    300k synthetic Gaussians, a lifted-sized selection
+  render_mask_two_walks_s_640x480_300k baseline: render_rgb + lifted_masks (render-mask --lift)
+  view_scene_send_s_dev_room, view_scene_send_mib_dev_room   connect to the last splat chunk
+                                    received, and the bytes received
+  view_scene_send_s_scale, view_scene_send_mib_scale         the same for the scale scene
+                                    (GOI_SCALE Gaussians, default 3M; --max-splats 2M drawn)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.index import _bundle, _log, _room, loadavg
+
+
+class Client:
+    """A page on the wire: connects to a goi view server, reports a camera, records messages."""
+
+    def __init__(self, url: str, width: int = 1280, height: int = 800):
+        import msgspec
+        import viser
+        from viser import _messages
+        from websockets.sync.client import connect
+
+        self.ws = connect(url, subprotocols=[f"viser-v{viser.__version__}"], max_size=None)
+        self.t_open = time.perf_counter()
+        self.received: list[tuple[float, int]] = []
+        self._stop = threading.Event()
+        cam = _messages.ViewerCameraMessage(
+            wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 0.0), fov=0.9, near=0.01,
+            far=1000.0, image_height=height, image_width=width, look_at=(0.0, 0.0, 1.0),
+            up_direction=(0.0, -1.0, 0.0),
+        )  # fmt: skip
+        self.ws.send(
+            msgspec.msgpack.encode({"type": type(cam).__name__, **cam.as_serializable_dict()})
+        )
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                m = self.ws.recv(timeout=0.2)
+            except TimeoutError:
+                continue
+            except Exception:
+                return
+            self.received.append((time.perf_counter(), len(m)))
+
+    def first_after(self, t: float, timeout: float = 30.0) -> float:
+        """When the first message after perf_counter time `t` arrived."""
+        end = time.perf_counter() + timeout
+        while time.perf_counter() < end:
+            later = [r for r, _ in self.received if r >= t]
+            if later:
+                return later[0]
+            time.sleep(0.002)
+        raise TimeoutError("no message arrived")
+
+    def settled(self, quiet: float = 2.0, timeout: float = 600.0) -> tuple[float, int]:
+        """(time of the last message, bytes received) once nothing arrived for `quiet` s."""
+        end = time.perf_counter() + timeout
+        while time.perf_counter() < end:
+            time.sleep(0.2)
+            if self.received and time.perf_counter() - self.received[-1][0] > quiet:
+                break
+        return self.received[-1][0], sum(n for _, n in self.received)
+
+    def close(self) -> None:
+        self._stop.set()
+        self.ws.close()
+        self.thread.join(5)
+
+
+def _serve(session, wait_page: bool = True):  # noqa: ANN001, ANN202
+    from stages.view.app import ViewerApp
+
+    app = ViewerApp(session)
+    url = app.start().replace("http://", "ws://")
+    client = Client(url)
+    page = None
+    for _ in range(600):
+        if app.pages:
+            page = next(iter(app.pages.values()))
+            break
+        time.sleep(0.05)
+    if page is None and wait_page:
+        raise RuntimeError("the page never connected")
+    return app, client, page
+
+
+def _ask(page, client: Client, prompt: str, route: str, final: bool = True) -> float:  # noqa: ANN001
+    """Seconds from Enter (what the page's form calls) to the answer on the page's wire."""
+    page.route = route
+    n = len(page.timeline)
+    t0 = time.perf_counter()
+    page.ask(prompt)
+    end = t0 + 600
+    while time.perf_counter() < end:
+        done = [(t, a) for t, a in page.timeline[n:] if a.final or not final]
+        if done:
+            return client.first_after(done[0][0]) - t0
+        time.sleep(0.002)
+    raise TimeoutError(f"no answer to {prompt!r}")
+
+
+def suite_view(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
+    from goi_cli.main import main
+    from stages.query.pipeline import PromptSources
+    from stages.query.res_index import ResIndexRun, build_res_index
+    from stages.scene.scene import load_scene
+    from stages.view.session import ViewRun, ViewSession
+
+    out: dict[str, float] = {"loadavg_1min_start": loadavg()}
+    out.update(_mask_at_camera(repeat, tmp, median_s))
+    out.update(_scale_send(tmp))
+    room = _room()
+    if room is None:
+        _log("no dev room (../shared/dev-room or GOI_DEV_ROOM): the dev-room figures skipped")
+        return out
+    scene = load_scene(room)
+    field = _dev_field(room, scene, tmp)
+    bundle_dir, what = _bundle(tmp)
+    _log(f"bundle: {what}")
+    index = build_res_index(scene, ResIndexRun(bundle_dir, tmp / "index.h5"))
+    prompts = json.loads((room / "prompts.json").read_text())
+    texts, ids = [p["text"] for p in prompts], [p["id"] for p in prompts]
+    n = max(1, min(repeat, len(texts)))
+
+    # the scene sent to a page, then the field's answers
+    session = ViewSession(
+        scene, field, PromptSources(text_embeddings=room / "text_embeddings.json"),
+        ViewRun(out=tmp / "view-field"),
+    )  # fmt: skip
+    app, client, page = _serve(session)
+    last, nbytes = client.settled()
+    out["view_scene_send_s_dev_room"] = last - client.t_open
+    out["view_scene_send_mib_dev_room"] = nbytes / 2**20
+    _log("the field's answer, Enter to the page's wire")
+    out["view_field_answer_s_dev_room"] = statistics.median(
+        _ask(page, client, t, "threshold") for t in texts[:n]
+    )
+    client.close()
+    app.stop()
+    scene_args = ["--scene", str(room), "--field", str(field), "--text-embeddings",
+                  str(room / "text_embeddings.json")]  # fmt: skip
+    k = [0]
+
+    def cli_threshold() -> None:
+        k[0] += 1
+        planes = tmp / f"planes{k[0]}.h5"
+        fit = ["--prompt", texts[0], "--res-masks", str(room / "res"), "--prompt-id", ids[0]]
+        assert main(["fit-hyperplane", *scene_args, *fit, "--out", str(planes)]) == 0
+        t = time.perf_counter()
+        sel = ["--prompt", texts[0], "--hyperplanes", str(planes), "--mode", "threshold"]
+        assert main(["select", *scene_args, *sel, "--out", str(tmp / f"t{k[0]}.h5")]) == 0
+        times.append(time.perf_counter() - t)
+
+    times: list[float] = []
+    for _ in range(n):
+        cli_threshold()
+    out["cli_select_threshold_s_dev_room"] = statistics.median(times)
+
+    # lifted answers from the RES index
+    session = ViewSession(
+        scene, field, PromptSources(text_embeddings=room / "text_embeddings.json",
+                                    bundle=bundle_dir, res_index=index),
+        ViewRun(out=tmp / "view-lifted"),
+    )  # fmt: skip
+    app, client, page = _serve(session)
+    client.settled()
+    _log("lifted answers from the RES index, Enter to the page's wire")
+    out["view_lifted_answer_s_dev_room"] = statistics.median(
+        _ask(page, client, t, "lifted") for t in texts[:n]
+    )
+    client.close()
+    app.stop()
+    times = []
+    for i, t in enumerate(texts[:n]):
+        start = time.perf_counter()
+        res = ["--bundle", str(bundle_dir), "--res-index", str(index), "--lift"]
+        assert (
+            main(["select", *scene_args, "--prompt", t, *res, "--out", str(tmp / f"l{i}.h5")]) == 0
+        )
+        times.append(time.perf_counter() - start)
+    out["cli_lifted_prompt_s_dev_room"] = statistics.median(times)
+    out["view_lifted_over_cli"] = (
+        out["view_lifted_answer_s_dev_room"] / out["cli_lifted_prompt_s_dev_room"]
+    )
+    out["loadavg_1min_end"] = loadavg()
+    return out
+
+
+def _dev_field(room: Path, scene, tmp: Path) -> Path:  # noqa: ANN001
+    from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
+    from stages.semantics.extract import ExtractParams, ExtractRun, import_features
+    from stages.semantics.field_model import FieldParams
+    from stages.semantics.fit_field import FieldRun, fit_field
+
+    iterations = int(os.environ.get("GOI_VIEW_FIELD_ITERATIONS", "100"))
+    _log(f"fitting the dev room's field ({iterations} iterations)")
+    feats = import_features(scene, room / "features", ExtractParams(), ExtractRun(tmp / "f.h5"))
+    cb = init_codebook(feats, CodebookParams(), CodebookRun(tmp / "cb.h5"))
+    fp = FieldParams(iterations=iterations)
+    return fit_field(scene, feats, cb, fp, FieldRun(tmp / "field.h5", checkpoint_every=0))
+
+
+def _mask_at_camera(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
+    from benchmarks.run import synthetic_scene
+    from stages.query.lifted import lifted_masks
+    from stages.render.rasterizer import Rasterizer
+    from stages.testing.synthetic import ring_cameras
+    from stages.view.session import rgb_and_selection
+
+    g = synthetic_scene(300_000, tmp)
+    rast = Rasterizer.from_gaussians(g)
+    cam = ring_cameras(4, 640, 480)[1]
+    sel = np.zeros(g.count, bool)
+    sel[: g.count // 20] = True  # an object's worth: 5 % of the scene
+    _log("the mask at a 640x480 camera, 300k Gaussians")
+    one = median_s(lambda: rgb_and_selection(rast, sel, cam), repeat)
+    two = median_s(lambda: (rast.render_rgb(cam), lifted_masks(rast, sel, [cam])), repeat)
+    return {
+        "view_mask_at_camera_s_640x480_300k": one,
+        "render_mask_two_walks_s_640x480_300k": two,
+    }
+
+
+def _scale_send(tmp: Path) -> dict[str, float]:
+    """The scale scene (benchmarks/scale.py's synthetic Mip-NeRF360-sized PLY) sent to a page."""
+    from stages.query.pipeline import PromptSources
+    from stages.scene.scene import load_scene
+    from stages.view.session import ViewRun, ViewSession
+
+    n = int(os.environ.get("GOI_SCALE", "3000000"))
+    d = tmp / "scale"
+    d.mkdir()
+    _log(f"the scale scene: {n:,} Gaussians")
+    from stages.scene.formats.inria import write_inria
+    from stages.scene.gaussians import save_ply
+    from stages.testing.synthetic import ring_cameras, room_vertex
+
+    v, _ = room_vertex(n, seed=0)
+    save_ply(d / "point_cloud.ply", v, force=True)
+    write_inria(d / "cameras.json", ring_cameras(8, 1237, 822))
+    (d / "masks").mkdir()
+    scene = load_scene(d)
+    session = ViewSession(scene, None, PromptSources(res_masks=d / "masks"), ViewRun(out=d / "o"))
+    t = time.perf_counter()
+    app, client, _ = _serve(session)
+    prepare = client.t_open - t
+    last, nbytes = client.settled(quiet=3.0)
+    out = {
+        "view_scene_prepare_s_scale": prepare,
+        "view_scene_send_s_scale": last - client.t_open,
+        "view_scene_send_mib_scale": nbytes / 2**20,
+        "view_scene_splats_sent_scale": float(app.splats.count),
+    }
+    client.close()
+    app.stop()
+    return out
