@@ -30,7 +30,6 @@ from __future__ import annotations
 import json
 import os
 import statistics
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -38,65 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.index import _bundle, _log, _room, loadavg
-
-
-class Client:
-    """A page on the wire: connects to a goi view server, reports a camera, records messages."""
-
-    def __init__(self, url: str, width: int = 1280, height: int = 800):
-        import msgspec
-        import viser
-        from viser import _messages
-        from websockets.sync.client import connect
-
-        self.ws = connect(url, subprotocols=[f"viser-v{viser.__version__}"], max_size=None)
-        self.t_open = time.perf_counter()
-        self.received: list[tuple[float, int]] = []
-        self._stop = threading.Event()
-        cam = _messages.ViewerCameraMessage(
-            wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 0.0), fov=0.9, near=0.01,
-            far=1000.0, image_height=height, image_width=width, look_at=(0.0, 0.0, 1.0),
-            up_direction=(0.0, -1.0, 0.0),
-        )  # fmt: skip
-        self.ws.send(
-            msgspec.msgpack.encode({"type": type(cam).__name__, **cam.as_serializable_dict()})
-        )
-        self.thread = threading.Thread(target=self._loop, daemon=True)
-        self.thread.start()
-
-    def _loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                m = self.ws.recv(timeout=0.2)
-            except TimeoutError:
-                continue
-            except Exception:
-                return
-            self.received.append((time.perf_counter(), len(m)))
-
-    def first_after(self, t: float, timeout: float = 30.0) -> float:
-        """When the first message after perf_counter time `t` arrived."""
-        end = time.perf_counter() + timeout
-        while time.perf_counter() < end:
-            later = [r for r, _ in self.received if r >= t]
-            if later:
-                return later[0]
-            time.sleep(0.002)
-        raise TimeoutError("no message arrived")
-
-    def settled(self, quiet: float = 2.0, timeout: float = 600.0) -> tuple[float, int]:
-        """(time of the last message, bytes received) once nothing arrived for `quiet` s."""
-        end = time.perf_counter() + timeout
-        while time.perf_counter() < end:
-            time.sleep(0.2)
-            if self.received and time.perf_counter() - self.received[-1][0] > quiet:
-                break
-        return self.received[-1][0], sum(n for _, n in self.received)
-
-    def close(self) -> None:
-        self._stop.set()
-        self.ws.close()
-        self.thread.join(5)
+from stages.testing.view_client import Client
 
 
 def _serve(session, wait_page: bool = True):  # noqa: ANN001, ANN202

@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 import traceback
+import warnings
 from typing import Any
 
 import numpy as np
@@ -84,6 +85,9 @@ class ViewerApp:
 
     def start(self) -> str:
         import viser
+
+        # a tab closed while its answer or mask was on the way: nothing is lost, say nothing
+        warnings.filterwarnings("ignore", message="Queued a .* on a closed connection")
 
         run = self.session.run
         with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: goi prints its own
