@@ -34,7 +34,7 @@ from stages.view.worker import Job, Worker
 REST_S = 0.3
 #: The side of the photos shown for a training camera.
 PHOTO_SIDE = 480
-TINT = np.array([1.0, 0.35, 0.0], np.float32)
+TINT = np.array([1.0, 0.0, 0.55], np.float32)  # magenta: stands out in most scenes
 EXPORT_BUTTONS = {
     "selection.h5": "selection",
     "PLY: the selection": "subset",
@@ -79,7 +79,7 @@ class ViewerApp:
         lo, hi = np.percentile(means, 2, axis=0), np.percentile(means, 98, axis=0)
         self.extent = float(np.linalg.norm(hi - lo)) or 1.0
         self.centre = 0.5 * (lo + hi)
-        self.frustum_scale = 0.02 * self.extent
+        self.frustum_scale = 0.01 * self.extent
 
     # -- serving ------------------------------------------------------------------------------
 
@@ -99,7 +99,7 @@ class ViewerApp:
         wxyz, pos, fov = browser_pose(first)
         # a little behind the first camera, so that its frustum is in view, not around it
         fwd = np.asarray(first.R, np.float64)[2]
-        back = pos - fwd * 1.5 * self.frustum_scale
+        back = pos - fwd * 3.0 * self.frustum_scale
         srv.initial_camera.position = tuple(back)
         srv.initial_camera.look_at = tuple(back + fwd * 0.25 * self.extent)
         srv.initial_camera.fov = fov
@@ -297,8 +297,8 @@ class Page:
         route = self.route
         cached = s.cached(prompt, route)
         if cached is not None:
-            self.show(cached)
-            self._say(f"{_e(ROUTE_NAMES[route])}: <i>{_e(prompt)}</i> (from the history)")
+            self.app.worker.cancel(self.id)
+            self.show(cached, note=" (from the history)")
             return
         self._say(f"answering <i>{_e(prompt)}</i> ({_e(ROUTE_NAMES[route])})...")
         self._progress(0, 1)
@@ -338,7 +338,7 @@ class Page:
         ans = self.app.session.cached(*key)
         if ans is not None and ans is not self.answer:
             self.app.worker.cancel(self.id)
-            self.show(ans)
+            self.show(ans, note=" (from the history)")
 
     def refresh_history(self) -> None:
         answers = self.app.session.history()
@@ -354,14 +354,14 @@ class Page:
 
     # -- showing --------------------------------------------------------------------------------
 
-    def show(self, ans: Answer) -> None:
+    def show(self, ans: Answer, note: str = "") -> None:
         """Light the answer up in 3D and say what answered it (a partial or final answer)."""
         with self.lock:
             if self.closed.is_set():
                 return
             self.answer = ans
             self._apply(ans.selected)
-            done = "" if ans.final else " (refining...)"
+            done = note if ans.final else " (refining...)"
             self._say(
                 f"<b>{ans.count:,}</b> Gaussians &middot; <span>{_e(ans.label)}</span>{done}<br>"
                 f"<i>{_e(ans.prompt)}</i> &middot; {ans.seconds:.2f} s"

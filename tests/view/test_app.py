@@ -109,7 +109,7 @@ def test_what_a_user_typed_is_shown_as_text(served):
 @pytest.mark.slow
 def test_the_scene_reaches_a_page_in_chunks(served):
     app, clients = served
-    _, nbytes = clients[0].settled(quiet=1.0)
+    _, nbytes = clients[0].settled(quiet=3.0)
     splat_bytes = app.splats.count * 32
     assert nbytes >= 0.9 * splat_bytes, (nbytes, splat_bytes)
     assert app.splats.count == app.session.scene.gaussians.count
