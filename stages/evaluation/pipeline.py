@@ -367,7 +367,7 @@ def camera_difference(old: dict, new: dict) -> str | None:
         return "other training views: " + "; ".join(p for p in parts if p)
     for name in sorted(new):
         a, b = np.asarray(old[name], np.float64), np.asarray(new[name], np.float64)
-        if a.shape != b.shape or a.shape != (17,):
+        if a.shape != b.shape or a.shape != (18,):
             return f"view {name}: a malformed record"
         if (a[:2] != b[:2]).any():
             return f"view {name} is {b[0]:.0f}x{b[1]:.0f}, was {a[0]:.0f}x{a[1]:.0f}"

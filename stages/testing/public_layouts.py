@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.core.errors import GoiError
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.formats.colmap import write_colmap
@@ -247,10 +248,20 @@ def room_as_lerf_mask(room: Path, out: Path, scene: str = "room", res: str = "re
     prompts = json.loads((room / "prompts.json").read_text())
     d = out / scene
     write_colmap(d / "sparse" / "0", s.cameras, binary=False)
+    rast = None
     for c in s.cameras:
-        src = s.image_path(c)
-        for sub in ["images", *(["images_train"] if c.name in split["train"] else [])]:
+        subs = ["images", *(["images_train"] if c.name in split["train"] else [])]
+        for sub in subs:
             (d / sub).mkdir(parents=True, exist_ok=True)
+        try:
+            src = s.image_path(c)
+        except GoiError:  # a room without photos: goi's rendering stands in for them
+            rast = rast or Rasterizer.from_gaussians(s.gaussians)
+            rgb = (np.clip(rast.render_rgb(c).image, 0, 1) * 255).astype(np.uint8)
+            for sub in subs:
+                _write_png(d / sub / f"{c.name}.png", rgb[:, :, ::-1])
+            continue
+        for sub in subs:
             shutil.copyfile(src, d / sub / f"{c.name}{src.suffix}")
     tests = sorted(split["test"])
     pairs = {}
