@@ -120,12 +120,11 @@ def _benchmark(
             vals = " ".join(_cell(x) for x in sp["values"])
             click.echo(f"  {k:30s} {vals}  range {_cell(sp['range'])}  sd {_cell(sp['sd'])}")
         for scene, e in b["scenes"].items():
-            q, sp = next(iter(e["seeds"]["queries"].items()), (None, None))
-            if q is not None and sp["range"] is not None:
+            for q, qs in list(e["seeds"]["queries"].items())[:1]:  # the widest first
                 click.echo(
                     f"  {scene}: widest query {q!r}: IoU "
-                    + " ".join(_cell(x) for x in sp["values"])
-                    + f" (range {_cell(sp['range'])})"
+                    + " ".join(_cell(x) for x in qs["values"])
+                    + f" (range {_cell(qs['range'])})"
                 )
     click.echo(f"report: {r.out}" + (f"\nhtml:   {r.html}" if r.html else ""))
 
