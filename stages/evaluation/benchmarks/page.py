@@ -125,6 +125,7 @@ def benchmark_page(
         f"{esc(notes['how_goi_enters'])}. The goi rows: {esc(notes['goi'])}.</p>",
         "<p class='key'>Figures: each query's first frame per variant, goi's prediction in red "
         "on goi's rendering, the ground truth outlined in green.</p>",
+        *([f"<p class='key'>{esc(notes['full_noise'])}.</p>"] if "full_noise" in notes else []),
     ]
     if shown:
         pub = PUBLISHED.get(name)
