@@ -111,6 +111,21 @@ def _benchmark(
     for v, s in r.report["variants"].items():
         proto = " ".join(f"{k} {_cell(x)}" for k, x in s["protocol"].items())
         click.echo(f"{v:14s} {proto} | goi mIoU {_cell(s['goi']['miou'])}")
+    if "seeds" in b:
+        sd = b["seeds"]
+        click.echo(
+            f"{sd['variant']} over seeds {','.join(map(str, sd['seeds']))} (mean over scenes):"
+        )
+        for k, sp in {**sd["mean"]["protocol"], "goi mIoU": sd["mean"]["goi_miou"]}.items():
+            vals = " ".join(_cell(x) for x in sp["values"])
+            click.echo(f"  {k:30s} {vals}  range {_cell(sp['range'])}  sd {_cell(sp['sd'])}")
+        for scene, e in b["scenes"].items():
+            for q, qs in list(e["seeds"]["queries"].items())[:1]:  # the widest first
+                click.echo(
+                    f"  {scene}: widest query {q!r}: IoU "
+                    + " ".join(_cell(x) for x in qs["values"])
+                    + f" (range {_cell(qs['range'])})"
+                )
     click.echo(f"report: {r.out}" + (f"\nhtml:   {r.html}" if r.html else ""))
 
 

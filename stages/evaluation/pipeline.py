@@ -56,6 +56,7 @@ from stages.query.lifting import LiftParams
 from stages.query.osh import THRESHOLD, HyperplaneParams
 from stages.query.res import ResFiles, ResIndexed, ResModel, ResSource, checked_index
 from stages.render.rasterizer import Rasterizer
+from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
 from stages.semantics.decode import SemanticRenderer
@@ -95,8 +96,12 @@ class EvalRun:
     html: Path | None = None
     """Also write an HTML report (overlays per prompt and view, metrics, timings)."""
     work: Path | None = None
-    """Directory for the intermediate artifacts (default: <out without .json>.work): new,
-    empty, or one a previous eval made; other files there are never replaced."""
+    """Directory for the intermediate artifacts (default: <out without .json>.work); with
+    --benchmark it holds one WORK/<scene>/ folder per scene. New, empty, or one a previous eval
+    made (other files there are never replaced). Its features, codebook and fields are reused
+    when made from the same feature files and options and the same training cameras by value
+    (intrinsics and poses within 1e-6, whichever files they were read from: a room's fit
+    serves its COLMAP or benchmark export); a line says why one is made again."""
     text_embeddings: Path | None = None
     """Prompt embeddings JSON (default: the room's text_embeddings.json)."""
     bundle: Path | None = None
@@ -107,6 +112,11 @@ class EvalRun:
     prompt side runs, on the room's photos, and lifted variants lift every indexed view."""
     variants: str = ",".join(VARIANTS)
     """Comma-separated variants to run (lifted is goi's added mode, the others the paper's)."""
+    seeds: str | None = None
+    """With --benchmark: 2 or 3 comma-separated seeds (e.g. 0,1,2) of the codebook, field and
+    hyperplane fits; `full` is fitted and answered once per seed (WORK/<scene>/seed-<s>/, the
+    run's --seed reused) and the report and page give the spread of its figures, so that a
+    difference can be read against the fit's own noise. Each seed costs one more fit."""
     force: bool = False
     """Overwrite existing report files."""
 
@@ -159,11 +169,13 @@ def _fit_models(
         return None, None
     assert features is not None  # run_eval asks for it when a variant needs a field
     feats, cb = work / "features.h5", work / "codebook.h5"
+    cameras = FitCameras(work, scene)
+    cameras.record()  # what this run makes records these cameras' digest
     with timer("extract"):
         files = feature_files(scene, features, "train")
         digest = sha256_files(list(files.values()))
         want = {"cameras": scene.cameras_digest(), "features_dir": digest}
-        if not _reusable(feats, "goi.features", want, report):
+        if not _reusable(feats, "goi.features", want, report, cameras=cameras):
             import_features(scene, features, ExtractParams(), ExtractRun(feats, force=True), report)
     with timer("init_codebook"):
         cp = CodebookParams(entries=p.entries, seed=p.seed)
@@ -183,7 +195,7 @@ def _fit_models(
         path = work / f"field_{kind}.h5"
         want = field_inputs(scene, feats, cb)
         config = json.dumps(json.loads(json.dumps(fp.config())), sort_keys=True)
-        if _reusable(path, "goi.field", want, report, {"config": config}):
+        if _reusable(path, "goi.field", want, report, {"config": config}, cameras):
             fitted[kind] = path
             continue
         report.log(f"eval: fit-field ({kind}, {p.iterations} iterations)")
@@ -251,33 +263,172 @@ def _res_figures(
 
 
 def _reusable(
-    path: Path, schema: str, inputs: dict, report: Report, attrs: dict | None = None
+    path: Path,
+    schema: str,
+    inputs: dict,
+    report: Report,
+    attrs: dict | None = None,
+    cameras: FitCameras | None = None,
 ) -> bool:
     """Whether an artifact of an earlier eval in the same --work can be used as it is: it is a
-    valid `schema` artifact, its recorded input digests are `inputs`, and its attributes hold
-    `attrs` (the options it was made with). Then the stage is skipped (e.g. a second eval with
-    other RES masks refits nothing)."""
+    valid `schema` artifact, its recorded input digests are `inputs` (the cameras' the same by
+    value when `cameras` is given), and its attributes hold `attrs` (the options it was made
+    with). Then the stage is skipped (e.g. a second eval with other RES masks refits nothing);
+    else one line says why it is made again."""
     if not path.is_file():
         return False
+    why = _why_not_reusable(path, schema, inputs, attrs or {}, cameras)
+    if why is not None:
+        report.log(f"eval: making {path} again: {why}")
+        return False
+    report.log(f"eval: reusing {path} (same inputs)")
+    return True
+
+
+#: what each recorded input digest stands for, in the line that says why a stage runs again
+_INPUT_NAMES = {
+    "ply": "another PLY",
+    "cameras": "other cameras",
+    "features_dir": "other feature files",
+    "features": "another features.h5",
+    "codebook": "another codebook",
+}
+
+
+def _why_not_reusable(
+    path: Path, schema: str, inputs: dict, attrs: dict, cameras: FitCameras | None
+) -> str | None:
     try:
         with open_h5(path, schema) as f:
             recorded = json.loads(str(f.attrs["inputs"]))
-            held = {k: f.attrs.get(k) for k in attrs or {}}
-    except (GoiError, ValueError, KeyError):
-        return False
-    if recorded != inputs:
-        return False
-    for k, v in (attrs or {}).items():
+            held = {k: f.attrs.get(k) for k in attrs}
+    except (GoiError, ValueError, KeyError) as e:
+        return f"it is not a readable {schema} artifact ({str(e).splitlines()[0][:120]})"
+    if not isinstance(recorded, dict):
+        return "its recorded inputs are not an object"
+    for k in sorted(set(recorded) | set(inputs)):
+        if k == "cameras" and cameras is not None and k in inputs:
+            why = cameras.why_not(recorded.get(k))
+            if why is not None:
+                return why
+        elif recorded.get(k) != inputs.get(k):
+            return f"it was made from {_INPUT_NAMES.get(k, 'another ' + k)}"
+    for k, v in attrs.items():
         got = held[k]
-        if isinstance(v, str):
-            if k == "config" and isinstance(got, str):
-                got = json.dumps(json.loads(got), sort_keys=True)
-            if got != v:
-                return False
+        if k == "config" and isinstance(v, str):
+            try:
+                then = json.loads(got) if isinstance(got, str) else {}
+            except ValueError:
+                then = {}
+            now = json.loads(v)
+            diff = [o for o in sorted(set(then) | set(now)) if then.get(o) != now.get(o)]
+            if diff:
+                o = diff[0]
+                return f"it was made with {o} {then.get(o)!r}, this run asks for {now.get(o)!r}"
         elif got is None or int(got) != v:
-            return False
-    report.log(f"eval: reusing {path} (same inputs)")
-    return True
+            return f"it was made with {k} {got!r}, this run asks for {v!r}"
+    return None
+
+
+#: The training cameras' values under each camera-file digest that --work's artifacts record
+#: (goi eval's own file in --work), so that the same cameras read from other files (a room's
+#: cameras.json and its COLMAP export, whose rotations move by 2e-7) reuse the fit.
+WORK_CAMERAS = "fit_cameras.json"
+#: Cameras are the same when every intrinsic, rotation entry and translation agrees within this,
+#: relative to max(1, |value|); image sizes and the training views' names must be equal.
+CAMERA_TOLERANCE = 1e-6
+_CAMERAS_SCHEMA = "goi.eval_work_cameras"
+
+
+def camera_values(cams: list[Camera]) -> dict[str, list[float]]:
+    """{view: [width, height, fx, fy, cx, cy, R (9, row-major), t (3)]}."""
+    return {
+        c.name: [
+            float(c.width),
+            float(c.height),
+            float(c.fx),
+            float(c.fy),
+            float(c.cx),
+            float(c.cy),
+            *map(float, np.asarray(c.R, np.float64).ravel()),
+            *map(float, np.asarray(c.t, np.float64).ravel()),
+        ]
+        for c in cams
+    }
+
+
+def camera_difference(old: dict, new: dict) -> str | None:
+    """None when `old` and `new` (camera_values) are the same views with the same values within
+    CAMERA_TOLERANCE, else what differs first."""
+    if set(old) != set(new):
+        gone, added = sorted(set(old) - set(new)), sorted(set(new) - set(old))
+        parts = [f"{len(gone)} view(s) gone, e.g. {gone[0]}" if gone else "",
+                 f"{len(added)} new, e.g. {added[0]}" if added else ""]  # fmt: skip
+        return "other training views: " + "; ".join(p for p in parts if p)
+    for name in sorted(new):
+        a, b = np.asarray(old[name], np.float64), np.asarray(new[name], np.float64)
+        if a.shape != b.shape or a.shape != (18,):
+            return f"view {name}: a malformed record"
+        if (a[:2] != b[:2]).any():
+            return f"view {name} is {b[0]:.0f}x{b[1]:.0f}, was {a[0]:.0f}x{a[1]:.0f}"
+        d = np.abs(a - b) / np.maximum(1.0, np.maximum(np.abs(a), np.abs(b)))
+        if not np.isfinite(d).all() or d.max() > CAMERA_TOLERANCE:
+            k = int(np.nanargmax(np.where(np.isfinite(d), d, np.inf)))
+            part = "intrinsics" if k < 6 else "rotation" if k < 15 else "translation"
+            return f"view {name}'s {part} differs by {d[k]:.2g}, more than {CAMERA_TOLERANCE:g}"
+    return None
+
+
+class FitCameras:
+    """The record of WORK_CAMERAS for one run: this scene's training cameras and digest, and
+    the values recorded under the digests of earlier runs."""
+
+    def __init__(self, work: Path, scene: Scene):
+        self.path = work / WORK_CAMERAS
+        self.digest = scene.cameras_digest()
+        self.values = camera_values(scene.views("train"))
+        self.records = self._read()
+
+    def _read(self) -> dict[str, dict[str, list[float]]]:
+        """The recorded values; a record goi eval cannot read counts as none (nothing is
+        reused on its word)."""
+        try:
+            doc = json.loads(self.path.read_text())
+            if doc["schema"] != _CAMERAS_SCHEMA or not str(doc["schema_version"]).startswith("1."):
+                return {}
+            records = doc["cameras"]
+            ok = isinstance(records, dict) and all(
+                isinstance(v, dict) and all(isinstance(x, list) for x in v.values())
+                for v in records.values()
+            )
+            return records if ok else {}
+        except (OSError, ValueError, KeyError, TypeError):
+            return {}
+
+    def why_not(self, digest: object) -> str | None:
+        """None when an artifact recording `digest` was made from these cameras' values."""
+        if digest == self.digest:
+            return None
+        old = self.records.get(digest) if isinstance(digest, str) else None
+        if old is None:
+            return "it was made from other camera files, whose values this --work did not record"
+        diff = camera_difference(old, self.values)
+        return None if diff is None else f"it was made from other cameras ({diff})"
+
+    def record(self) -> None:
+        if self.records.get(self.digest) == self.values:
+            return
+        self.records[self.digest] = self.values
+        doc = {
+            "schema": _CAMERAS_SCHEMA,
+            "schema_version": "1.0",
+            "goi_version": __version__,
+            "command": command_line(),
+            "note": "the training cameras' values [width, height, fx, fy, cx, cy, R (row-major), "
+            "t] under the camera files' digest that this --work's artifacts record",
+            "cameras": self.records,
+        }
+        write_json(self.path, doc, force=True)
 
 
 def _visibility(room: Room) -> np.ndarray:
@@ -354,6 +505,7 @@ def _summarise(variant_report: dict, with_3d: bool) -> None:
 
 #: The intermediate files eval writes in --work (and the marker saying it made the directory).
 WORK_FILES = (
+    WORK_CAMERAS,
     "features.h5",
     "features.h5.partial",
     "codebook.h5",
@@ -387,6 +539,11 @@ def _check_work(work: Path) -> None:
 
 
 def _made_by_eval(path: Path) -> bool:
+    if path.suffix == ".json":
+        try:
+            return str(json.loads(path.read_text()).get("command", "")).startswith("goi eval")
+        except (OSError, ValueError, AttributeError):
+            return False
     try:
         with h5py.File(path, "r") as f:
             return str(f.attrs.get("command", "")).startswith("goi eval")
@@ -431,6 +588,11 @@ def run_eval(
     are the files under `res`, or made by `run.bundle`'s RES. `features` may be None when only
     field-free variants run."""
     check_params(p)
+    if run.seeds is not None:
+        raise GoiError(
+            "--seeds: only with --benchmark (a room's eval fits one field; run it once per "
+            "--seed to compare)"
+        )
     variants = _chosen_variants(run.variants)
     room = load_room(Path(room_dir), run.text_embeddings)
     for option, path in (("--out", run.out), ("--html", run.html)):

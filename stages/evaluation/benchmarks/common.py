@@ -42,11 +42,19 @@ class BenchmarkScene:
     frames: list[Frame]
     held_out: set[str] = field(default_factory=set)  # camera names the field must not train on
     skipped: list[str] = field(default_factory=list)  # what was skipped, as the reference does
+    layout: str = ""  # which of a benchmark's accepted layouts was found (LERF-Mask's folders)
+
+
+#: the longest query text that is its own id (a file name has at most 255 bytes)
+MAX_ID_BYTES = 200
 
 
 def query_id(text: str) -> str:
     """The id a query's RES masks are filed under: the text itself when it is a plain name
-    (e.g. 'green apple'), else its safe_name."""
+    (e.g. 'green apple') short enough to be a file name, else its safe_name. A query's text is
+    data: it reaches the file system only as this id."""
+    if len(text.encode("utf-8", "surrogatepass")) > MAX_ID_BYTES:
+        return safe_name(text)
     try:
         return check_plain_name(text, "query")
     except GoiError:
@@ -59,10 +67,22 @@ def skip(scene: BenchmarkScene, message: str) -> None:
     warn(message)
 
 
+#: A ground truth may be at most this many times its camera's size on a side (Mip-NeRF360's
+#: full-size masks against cameras trained on images_8); checked before any array is made.
+MAX_SCALE = 8
+
+
 def scaled_to(cam: Camera, width: int, height: int, where: str) -> Camera:
-    """The camera rendered at the ground truth's size; the aspect ratios must agree (1%)."""
+    """The camera rendered at the ground truth's size; the aspect ratios must agree (1%) and
+    the size be at most MAX_SCALE times the camera's on a side."""
     if width < 2 or height < 2:
         raise GoiError(f"{where}: ground truth of {width}x{height} pixels")
+    if width > MAX_SCALE * cam.width or height > MAX_SCALE * cam.height:
+        raise GoiError(
+            f"{where}: ground truth of {width}x{height} pixels, more than {MAX_SCALE} times "
+            f"its camera {cam.name!r} ({cam.width}x{cam.height}) on a side: not this scene's "
+            "frame?"
+        )
     if abs(width / height - cam.width / cam.height) > 0.01 * cam.width / cam.height:
         raise GoiError(
             f"{where}: ground truth is {width}x{height}, but its camera {cam.name!r} is "
@@ -90,13 +110,43 @@ def read_grey(path: Path, what: str) -> np.ndarray:
     return luma.astype(np.uint8)
 
 
+def checked_size(cam: Camera, path: Path, what: str, same_as: Camera | None = None) -> Camera:
+    """The camera at the size of the image `path`, read from its PNG or JPEG header and checked
+    against the camera (scaled_to) before any pixel is decoded; with `same_as`, the size must
+    be that camera's (the other masks of the frame)."""
+    from stages.core.files import regular_file
+    from stages.scene.images import image_size
+
+    regular_file(path, what)
+    try:
+        size = image_size(path)
+    except OSError as e:
+        raise GoiError(f"{path}: cannot read the {what} ({e.strerror or e})") from None
+    if size is None:
+        raise GoiError(
+            f"{path}: the {what} is not a PNG or JPEG (goi reads a ground truth's size from "
+            "its header, before decoding it)"
+        )
+    w, h = size
+    if same_as is not None:
+        if (w, h) != (same_as.width, same_as.height):
+            raise GoiError(
+                f"{path}: {w}x{h}, but the frame's other masks are {same_as.width}x{same_as.height}"
+            )
+        return same_as
+    return scaled_to(cam, w, h, str(path))
+
+
 def read_grey_cv2(path: Path, what: str) -> np.ndarray:
     """[H, W] uint8 as `cv2.imread(p, cv2.IMREAD_GRAYSCALE)` gives it (GOI's eval_seg.py)."""
-    import cv2
-
     from stages.core.files import regular_file
+    from stages.scene.images import MAX_IMAGE_PIXELS, _quiet_cv2, image_size
 
-    img = cv2.imread(str(regular_file(path, what)), cv2.IMREAD_GRAYSCALE)
+    cv2 = _quiet_cv2()
+    size = image_size(regular_file(path, what))
+    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise GoiError(f"{path}: the {what} is {size[0]}x{size[1]} pixels; too large")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise GoiError(f"{path}: cannot read the {what} (not an image cv2 decodes)")
     return np.asarray(img)
@@ -111,9 +161,16 @@ def pil_nearest(img: np.ndarray, width: int, height: int) -> np.ndarray:
     return img[ys[:, None], xs[None, :]]
 
 
+def image_name(cam: Camera) -> str:
+    """A camera's image name as the 3DGS loaders the references build on take it:
+    `os.path.basename(image_path).split(".")[0]`."""
+    return Path(cam.image or cam.name).name.split(".")[0]
+
+
 def sorted_by_image(cameras: list[Camera]) -> list[Camera]:
-    """The cameras in the order of their image names (how LangSplat indexes its views)."""
-    return sorted(cameras, key=lambda c: c.image or c.name)
+    """The cameras in the 3DGS loaders' order, which LangSplat and Gaussian Grouping index:
+    `sorted(cam_infos_unsorted, key=lambda x: x.image_name)`."""
+    return sorted(cameras, key=image_name)
 
 
 def require_dir(path: Path, what: str) -> Path:

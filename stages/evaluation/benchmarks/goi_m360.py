@@ -15,9 +15,9 @@ from stages.evaluation.benchmarks.common import (
     BenchmarkScene,
     Frame,
     Query,
+    checked_size,
     read_grey_cv2,
     require_dir,
-    scaled_to,
     skip,
 )
 from stages.query.prompts import check_plain_name
@@ -45,17 +45,16 @@ def read_goi_m360(root: Path, scene: str, cameras: list[Camera]) -> BenchmarkSce
             if cam is None:
                 skip(out, f"{f}: no camera named {name!r}; skipped, as eval_seg.py skips it")
                 continue
-            gt = read_grey_cv2(f, "ground-truth mask") > 0
             frame = frames.get(name)
-            if frame is None:
+            if frame is None:  # the size from the header, checked before decoding
                 frame = frames[name] = Frame(
-                    name, scaled_to(cam, gt.shape[1], gt.shape[0], str(f)), masks, {}
+                    name, checked_size(cam, f, "ground-truth mask"), masks, {}
                 )
-            elif gt.shape != (frame.camera.height, frame.camera.width):
-                raise GoiError(
-                    f"{f}: {gt.shape[1]}x{gt.shape[0]}, another prompt's mask of {name} differs"
-                )
-            frame.gts[q.id] = gt
+            else:
+                checked_size(cam, f, "ground-truth mask", frame.camera)
+            if q.id in frame.gts:
+                raise GoiError(f"{f}: a second mask of image {name!r} for prompt {prompt.name!r}")
+            frame.gts[q.id] = read_grey_cv2(f, "ground-truth mask") > 0
     if not out.queries:
         raise GoiError(f"{d}: no <prompt>/masks/ folders")
     out.frames = list(frames.values())

@@ -89,7 +89,8 @@ def read_lerf_ovs(root: Path, scene: str, cameras: list[Camera]) -> BenchmarkSce
         objects = doc.get("objects")
         if not isinstance(objects, list):
             raise GoiError(f"{path}: no 'objects' list (the frame's annotated queries)")
-        cam = scaled_to(by_index[idx], w, h, f"{path}: info")
+        # the frame's size against its camera's before any array of it is made
+        cam = scaled_to(by_index[idx], w, h, f"{path}: fields 'info.width' x 'info.height'")
         frame = Frame(Path(name).stem, cam, path, {})
         for k, obj in enumerate(objects):
             where = f"{path}: objects[{k}]"

@@ -16,10 +16,10 @@ from stages.evaluation.benchmarks.common import (
     BenchmarkScene,
     Frame,
     Query,
+    checked_size,
     query_id,
     read_grey_cv2,
     require_dir,
-    scaled_to,
     skip,
 )
 from stages.scene.cameras import Camera
@@ -55,8 +55,8 @@ def read_replica_goi(root: Path, scene: str, cameras: list[Camera]) -> Benchmark
         if cam is None:
             skip(out, f"{f}: no camera named {view!r}; skipped, as eval_seg.py skips it")
             continue
+        frame = Frame(img_name, checked_size(cam, f, "class-id map"), f, {})
         ids = read_grey_cv2(f, "class-id map")
-        frame = Frame(img_name, scaled_to(cam, ids.shape[1], ids.shape[0], str(f)), f, {})
         for k, e in enumerate(entries):
             if not isinstance(e, dict) or not isinstance(e.get("class_name"), str):
                 raise GoiError(f"{where}[{k}]: field 'class_name' is missing or not a string")

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -22,11 +22,12 @@ import numpy as np
 from schemas import current_version, validate_json
 from stages import __version__
 from stages.core.artifacts import check_writable, command_line, write_json
-from stages.core.errors import GoiError
+from stages.core.errors import GoiError, warn
 from stages.core.files import refuse_inputs
 from stages.core.params import check_params
 from stages.core.report import SILENT, Report
 from stages.core.staging import staged_outputs
+from stages.evaluation.benchmarks import goi_m360, lerf_mask, lerf_ovs, replica_goi, three_d_ovs
 from stages.evaluation.benchmarks.common import BenchmarkScene
 from stages.evaluation.benchmarks.goi_m360 import read_goi_m360
 from stages.evaluation.benchmarks.lerf_mask import read_lerf_mask
@@ -78,6 +79,16 @@ READERS: dict[str, Reader] = {
     "replica-goi": read_replica_goi,
 }
 BENCHMARKS = tuple(READERS)
+#: each benchmark's released scene names (a name outside them has no published figure)
+SCENES: dict[str, tuple[str, ...]] = {
+    "lerf-ovs": lerf_ovs.SCENES,
+    "lerf-mask": lerf_mask.SCENES,
+    "3d-ovs": three_d_ovs.SCENES,
+    "goi-m360": goi_m360.SCENES,
+    "replica-goi": replica_goi.SCENES,
+}
+#: the variant whose spread over --seeds is measured (the paper's method)
+SEEDED = "full"
 
 
 @dataclass
@@ -89,6 +100,21 @@ class BenchScene:
     room: Room
     features: Path
     res: Path | None
+
+
+def parse_seeds(text: str | None, seed: int) -> list[int]:
+    """--seeds: 2 or 3 distinct seeds (comma-separated integers), [] when not asked for."""
+    if text is None:
+        return []
+    try:
+        seeds = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise GoiError(f"--seeds: {text!r} is not a comma-separated list of integers") from None
+    if not 2 <= len(seeds) <= 3 or len(set(seeds)) != len(seeds):
+        raise GoiError(f"--seeds: {text!r}; give 2 or 3 distinct seeds (e.g. {seed},{seed + 1})")
+    if any(not 0 <= x < 2**31 for x in seeds):
+        raise GoiError(f"--seeds: {text!r}; each seed is an integer from 0 to 2^31 - 1")
+    return seeds
 
 
 def parse_scenes(specs: list[str] | tuple[str, ...]) -> list[tuple[str, Path]]:
@@ -192,7 +218,19 @@ def run_benchmark(
             check_writable(Path(path), run.force, option)
     if run.text_embeddings is None:
         raise GoiError("--text-embeddings: required with --benchmark (JSON {query: [floats]})")
+    if run.res_index is not None:
+        raise GoiError(
+            "--res-index: not used with --benchmark (a RES index belongs to one room's "
+            "photos); give the benchmark's RES masks with --res-masks or a RES with --bundle"
+        )
+    seeds = parse_seeds(run.seeds, p.seed)
     specs = parse_scenes(scene_specs)
+    for name, _ in specs:
+        if name not in SCENES[benchmark]:
+            warn(
+                f"--scene {name}: not one of {benchmark}'s released scenes "
+                f"({', '.join(SCENES[benchmark])}); no published figure is set beside it"
+            )
     bundle = _res_bundle(res, run.bundle)
     emb_path = Path(run.text_embeddings)
     embeddings = load_text_embeddings(emb_path)
@@ -212,6 +250,11 @@ def run_benchmark(
                 f"({emb_path}) {text_dim}; image and text features must share one space"
             )
         _check_entries(p, files)  # --entries against the cells k-means will sample
+        n_train = len(room.scene.views("train"))
+        if p.res_views is not None and p.res_views > n_train:
+            raise GoiError(
+                f"--res-views: {p.res_views} is more than scene {name!r}'s {n_train} training views"
+            )
         scenes.append(
             BenchScene(bench, room, feats, per_scene(res, name, len(specs), "--res-masks"))
         )
@@ -226,7 +269,12 @@ def run_benchmark(
     outputs = {
         "--out": run.out,
         "--html": [run.html, page_files_dir(run.html)] if run.html is not None else None,
-        "--work": [work / s.bench.name / f for s in scenes for f in WORK_FILES],
+        "--work": [
+            work / s.bench.name / sub / f
+            for s in scenes
+            for sub in ["", *(f"seed-{x}" for x in seeds if x != p.seed)]
+            for f in WORK_FILES
+        ],
     }
     refuse_inputs(outputs, inputs)
     doc: dict = {
@@ -242,6 +290,10 @@ def run_benchmark(
             "protocol": PROTOCOLS[benchmark][0],
             "how_goi_enters": _HOW[benchmark],
             "mean": "the mean over scenes of each scene's figure",
+            "full_noise": "full's figures move with its fit's seed and with numerical noise (on "
+            "the dev room a refit from cameras moved by 2e-7 moved LERF-Mask mIoU by -0.033 and "
+            "one prompt from 0.66 to 0.18, lifted under 0.008 on every prompt): "
+            + ("benchmark.seeds gives their spread" if seeds else "--seeds gives their spread"),
         },
         "variants": {v: {"prompts": {}} for v in variants},
         "benchmark": {"name": benchmark, "protocol": PROTOCOLS[benchmark][0], "scenes": {}},
@@ -252,7 +304,9 @@ def run_benchmark(
         name = s.bench.name
         report.log(
             f"eval: {benchmark} scene {name} ({len(s.bench.frames)} frames, "
-            f"{len(s.bench.queries)} queries)"
+            f"{len(s.bench.queries)} queries"
+            + (f"; test_mask/ holds {s.bench.layout}" if s.bench.layout else "")
+            + ")"
         )
         wdir = work / name
         _check_work(wdir)
@@ -260,44 +314,43 @@ def run_benchmark(
         models = Answerers.of(s.room.scene.gaussians, s.room.scene.views("test"), tfcc, direct)
         if bundle is not None:
             sources = {q.id: ResModel(bundle, q.text, models.rast) for q in s.bench.queries}
-        train = s.room.scene.views("train")
-        hp = HyperplaneParams(threshold=p.threshold)
-        planes = HyperplaneRun(wdir / "hyperplanes.h5", refit=True)
-        lp = LiftParams(lift=True, res_views=p.res_views, min_evidence=p.min_evidence)
         entry: dict = {
             "n_frames": len(s.bench.frames),
             "n_queries": len(s.bench.queries),
             "skipped": s.bench.skipped,
+            **({"layout": s.bench.layout} if s.bench.layout else {}),
+            "frames": {f.key: f.camera.name for f in s.bench.frames},
             "variants": {},
         }
         for variant in variants:
-            preds: dict[str, dict[str, np.ndarray]] = {}
-            scores: dict[str, np.ndarray] = {}  # query id -> [G] the answer's scores
-            maps: dict[str, dict[str, np.ndarray]] | None = None
-            for prompt in report.progress(s.room.prompts, f"{name} {variant}", show=_pid):
-                text = s.room.embeddings[prompt.text]
-                t0 = time.perf_counter()
-                views = prompt.test_views
-                src = sources[prompt.id]
-                pred = models.predict(
-                    variant, prompt.text, text, src, train, hp, lp, planes, views, p.seed
-                )
-                timer.add(f"query_{variant}", time.perf_counter() - t0)
-                preds[prompt.id] = pred.masks
-                if pred.scores is not None:
-                    scores[prompt.id] = pred.scores
-            if benchmark in SCORE_MAP_BENCHMARKS and len(scores) == len(preds):
-                with timer(f"score_map_{variant}"):
-                    maps = frame_score_maps(models, s.room.prompts, scores)
-            with timer("metrics"):
-                proto, detail = protocol_scores(benchmark, s.bench, preds, maps)
-                own = goi_scores(s.bench, preds)
-            entry["variants"][variant] = json_figures(
-                {"protocol": proto, "goi": own, "queries": detail}
+            entry["variants"][variant], preds = _answer(
+                benchmark, s, models, sources, variant, wdir, p, timer, report
             )
             if run.html is not None:
                 thumbs[(name, variant)] = thumbnails(s.bench, preds, tfcc)
+        if seeds:
+            runs = {}
+            for seed in seeds:
+                if seed == p.seed and SEEDED in variants:
+                    runs[seed] = entry["variants"][SEEDED]
+                    continue
+                sp = replace(p, seed=seed)
+                sdir = wdir / f"seed-{seed}"
+                _check_work(sdir)
+                report.log(f"eval: {name}: {SEEDED} with seed {seed} (--seeds)")
+                tf, _ = _fit_models(s.room, s.features, sdir, [SEEDED], sp, timer, report)
+                m = Answerers.of(s.room.scene.gaussians, s.room.scene.views("test"), tf, None)
+                runs[seed], _ = _answer(benchmark, s, m, sources, SEEDED, sdir, sp, timer, report)
+            entry["seeds"] = seed_spread(runs)
         doc["benchmark"]["scenes"][name] = entry
+    if seeds:
+        doc["benchmark"]["seeds"] = {
+            "seeds": seeds,
+            "variant": SEEDED,
+            "what": "the codebook's, field's and hyperplanes' seed; per seed the figures of "
+            f"{SEEDED}, and over the seeds their min, max, range (max - min) and sample sd",
+            "mean": mean_spread([e["seeds"] for e in doc["benchmark"]["scenes"].values()]),
+        }
     _means(doc, variants)
     with staged_outputs():
         if run.html is not None:
@@ -306,6 +359,99 @@ def run_benchmark(
         validate_json(doc, "goi.eval", str(run.out))
         write_json(run.out, doc, force=True)
     return EvalResult(doc, Path(run.out), run.html)
+
+
+def _answer(
+    benchmark: str,
+    s: BenchScene,
+    models: Answerers,
+    sources: dict[str, ResSource],
+    variant: str,
+    wdir: Path,
+    p: EvalParams,
+    timer: _Timer,
+    report: Report,
+) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
+    """One variant's answers to every query of a scene, scored: (its figures, its masks)."""
+    train = s.room.scene.views("train")
+    hp = HyperplaneParams(threshold=p.threshold)
+    planes = HyperplaneRun(wdir / "hyperplanes.h5", refit=True)
+    lp = LiftParams(lift=True, res_views=p.res_views, min_evidence=p.min_evidence)
+    preds: dict[str, dict[str, np.ndarray]] = {}
+    scores: dict[str, np.ndarray] = {}  # query id -> [G] the answer's scores
+    maps: dict[str, dict[str, np.ndarray]] | None = None
+    for prompt in report.progress(s.room.prompts, f"{s.bench.name} {variant}", show=_pid):
+        text = s.room.embeddings[prompt.text]
+        t0 = time.perf_counter()
+        pred = models.predict(
+            variant, prompt.text, text, sources[prompt.id], train, hp, lp, planes,
+            prompt.test_views, p.seed,
+        )  # fmt: skip
+        timer.add(f"query_{variant}", time.perf_counter() - t0)
+        preds[prompt.id] = pred.masks
+        if pred.scores is not None:
+            scores[prompt.id] = pred.scores
+    if benchmark in SCORE_MAP_BENCHMARKS and len(scores) == len(preds):
+        with timer(f"score_map_{variant}"):
+            maps = frame_score_maps(models, s.room.prompts, scores)
+    with timer("metrics"):
+        proto, detail = protocol_scores(benchmark, s.bench, preds, maps)
+        own = goi_scores(s.bench, preds)
+    return json_figures({"protocol": proto, "goi": own, "queries": detail}), preds
+
+
+def _spread(values: list[float | None]) -> dict:
+    """{values, min, max, range, sd} of one figure over the seeds (None where a seed's is)."""
+    xs = [x for x in values if x is not None]
+    whole = len(xs) == len(values) and len(xs) > 1
+    return {
+        "values": values,
+        "min": min(xs) if whole else None,
+        "max": max(xs) if whole else None,
+        "range": max(xs) - min(xs) if whole else None,
+        "sd": float(np.std(xs, ddof=1)) if whole else None,
+    }
+
+
+def _query_iou(figs: dict, qid: str) -> float | None:
+    ious = [d.get("iou") for d in figs["queries"].get(qid, {}).values()]
+    ious = [x for x in ious if x is not None]
+    return float(np.mean(ious)) if ious else None
+
+
+def seed_spread(runs: dict[int, dict]) -> dict:
+    """A scene's figures of one variant per seed ({seed: figures}) -> the spread of each
+    protocol figure, of goi's mIoU, and of each query's IoU (protocol, mean over its frames),
+    the widest query first."""
+    seeds = list(runs)
+    first = runs[seeds[0]]
+    out: dict = {
+        "protocol": {
+            k: _spread([runs[x]["protocol"][k] for x in seeds]) for k in first["protocol"]
+        },
+        "goi_miou": _spread([runs[x]["goi"]["miou"] for x in seeds]),
+    }
+    queries = {q: _spread([_query_iou(runs[x], q) for x in seeds]) for q in first["queries"]}
+    out["queries"] = dict(sorted(queries.items(), key=lambda kv: -(kv[1]["range"] or 0.0)))
+    return out
+
+
+def mean_spread(per_scene: list[dict]) -> dict:
+    """The spread of the mean over scenes: per seed the mean of the scenes' figures."""
+
+    def mean_of(values: list[list[float | None]]) -> list[float | None]:
+        return [
+            None if any(v is None for v in col) else float(np.mean(col))  # type: ignore[arg-type]
+            for col in zip(*values, strict=True)
+        ]
+
+    keys = per_scene[0]["protocol"].keys()
+    return {
+        "protocol": {
+            k: _spread(mean_of([sc["protocol"][k]["values"] for sc in per_scene])) for k in keys
+        },
+        "goi_miou": _spread(mean_of([sc["goi_miou"]["values"] for sc in per_scene])),
+    }
 
 
 def frame_score_maps(

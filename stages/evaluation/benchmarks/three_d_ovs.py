@@ -15,9 +15,11 @@ import numpy as np
 from stages.core.errors import GoiError, warn
 from stages.core.files import read_text
 from stages.evaluation.benchmarks.common import (
+    MAX_ID_BYTES,
     BenchmarkScene,
     Frame,
     Query,
+    checked_size,
     pil_nearest,
     query_id,
     read_grey,
@@ -41,11 +43,25 @@ SCENES = (
 
 
 def read_classes(path: Path) -> list[str]:
+    """classes.txt as read_classes_names reads it: `[line.strip() for line in lines]`, sorted.
+    A class names its mask file <class>.png in each frame folder: a name that is no plain file
+    name (a '/', '..', a control character, too long) can name no mask, and is refused here."""
     classes = [line.strip() for line in read_text(path, "3D-OVS class list").splitlines()]
     if not classes or any(not c for c in classes):
         raise GoiError(f"{path}: expected one class name per line, without blank lines")
     if len(set(classes)) != len(classes):
         raise GoiError(f"{path}: a class is listed twice")
+    for i, c in enumerate(classes):
+        if (
+            c in (".", "..")
+            or any(x in c for x in "/\\")
+            or not c.isprintable()
+            or len(c.encode("utf-8", "surrogatepass")) > MAX_ID_BYTES
+        ):
+            raise GoiError(
+                f"{path}: line {i + 1}: class {c[:60]!r} is not a file name (each class's mask "
+                "is segmentations/<NN>/<class>.png)"
+            )
     return sorted(classes)
 
 
@@ -81,6 +97,7 @@ def read_three_d_ovs(
         cam = by_image.get(image.name) or by_image.get(image.stem)
         if cam is None:
             raise GoiError(f"{folder}: its image {image.name} has no camera in the scene")
+        full = cam
         cam = scaled_to(cam, int(cam.width / downsample), int(cam.height / downsample), str(folder))
         extra = sorted({p.stem for p in folder.glob("*.png")} - set(classes))
         if extra:
@@ -89,13 +106,16 @@ def read_three_d_ovs(
                 "ignored, as the reference does"
             )
         frame = Frame(folder.name, cam, folder, {})
+        # the class names are data: matched against the folder's file names, never joined
+        pngs = {p.name[: -len(".png")]: p for p in folder.iterdir() if p.name.endswith(".png")}
         for q in out.queries:
-            png = folder / f"{q.text}.png"
-            if not png.is_file():
+            png = pngs.get(q.text)
+            if png is None or not png.is_file():
                 raise GoiError(
-                    f"{png}: missing; classes.txt lists {q.text!r}, and every class needs "
-                    "a mask in every frame"
+                    f"{folder}: no {q.text}.png; classes.txt lists {q.text!r}, and every class "
+                    "needs a mask in every frame"
                 )
+            checked_size(full, png, "class mask")  # the image's size, before decoding
             grey = pil_nearest(read_grey(png, "class mask"), cam.width, cam.height)
             frame.gts[q.id] = (grey.astype(np.float64) / 255.0).astype(np.int8)
         out.frames.append(frame)
