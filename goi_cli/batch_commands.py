@@ -30,7 +30,10 @@ def batch_cmd(config: Path, snakemake_args: tuple[str, ...], **kw) -> None:
 
     Snakemake's own options go after `--`, e.g. `goi batch c.yaml --executor slurm --jobs 100
     -- --default-resources slurm_account=X` or `--executor cluster-generic --
-    --cluster-generic-submit-cmd 'sbatch ...'`. Needs `pip install 'goi[batch]'`.
+    --cluster-generic-submit-cmd 'sbatch ...'`; not those goi batch sets itself (--config,
+    --configfile, --snakefile, --directory, the profiles, the lock). Every stage's inputs are
+    checked before the first job; no Snakemake profile is loaded but the one --profile names.
+    Needs `pip install 'goi[batch]'`.
     """
     from stages.batch.config import load_batch
     from stages.batch.run import last_line, run_batch, snakemake_available

@@ -421,7 +421,8 @@ def _scene(
         index_bundle = str(bundle.resolve())
         try:  # what goi index-res checks first: a bundle with an image side, every photo
             loaded.indexable(bundle)
-            [scene.image_path(cam) for cam in scene.views("train")]
+            for cam in scene.views("train"):
+                scene.image_path(cam)  # raises, naming a photo that is not there
         except GoiError as e:
             raise c.fail(where("res_index"), f"{key}.res_index", f"cannot be built: {e}") from None
     elif isinstance(res_index, str):
@@ -473,7 +474,8 @@ def _scene(
         # workflow expects it (`goi query` strips the text before it names the answer).
         text = check_prompt(raw, at)
         if pid is not None:
-            check_plain_name(pid, f"{at}.id", "a subdirectory of 'res_masks'")
+            at_id = f"{c.path}: line {p.line}: '{pkey}[{i}].id'"
+            check_plain_name(pid, at_id, "a subdirectory of 'res_masks'")
         k = safe_name(text)
         if k in by_key:
             raise GoiError(

@@ -256,7 +256,8 @@ def check_config(cfg: dict, path: Path, model_type: str) -> None:
     range (naming the key), and the config's sections those of its model_type (a CLIP config
     labelled `sam` holds `text_config`, which SAM's has not)."""
     tf = transformers()
-    cls = tf.CONFIG_MAPPING.get(model_type) if model_type in tf.CONFIG_MAPPING else None
+    # (the mapping is lazy: its .get answers None whatever the key)
+    cls = tf.CONFIG_MAPPING[model_type] if model_type in tf.CONFIG_MAPPING else None
     subs = getattr(cls, "sub_configs", None) or {}
     for key, value in cfg.items():
         if key in subs and value is not None and not isinstance(value, dict):
