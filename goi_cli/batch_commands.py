@@ -30,7 +30,10 @@ def batch_cmd(config: Path, snakemake_args: tuple[str, ...], **kw) -> None:
 
     Snakemake's own options go after `--`, e.g. `goi batch c.yaml --executor slurm --jobs 100
     -- --default-resources slurm_account=X` or `--executor cluster-generic --
-    --cluster-generic-submit-cmd 'sbatch ...'`. Needs `pip install 'goi[batch]'`.
+    --cluster-generic-submit-cmd 'sbatch ...'`; not those goi batch sets itself (--config,
+    --configfile, --snakefile, --directory, the profiles, the lock). Every stage's inputs are
+    checked before the first job; no Snakemake profile is loaded but the one --profile names.
+    Needs `pip install 'goi[batch]'`.
     """
     from stages.batch.config import load_batch
     from stages.batch.run import last_line, run_batch, snakemake_available
@@ -56,22 +59,32 @@ def batch_cmd(config: Path, snakemake_args: tuple[str, ...], **kw) -> None:
 
 
 def _check_options(batch: object) -> None:
-    """Every option a scene adds to a stage is one that goi command has (checked here, where
-    the commands are known, before any job runs)."""
+    """Every option a scene adds to a stage is one that goi command has, with a value of its
+    type and range: parsed by the command's own click option (checked here, where the commands
+    are known, before any job runs)."""
     from stages.batch.config import Batch
 
     assert isinstance(batch, Batch)
     goi = click.get_current_context().find_root().command
     assert isinstance(goi, click.Group)
     for s in batch.scenes:
-        for (stage, name), line in s.option_lines.items():
+        for (stage, name), (line, value) in s.option_values.items():
             command = goi.commands[stage]
-            known = {o for p in command.params for o in p.opts if o.startswith("--")}
-            if f"--{name}" not in known:
+            where = f"{batch.config}: line {line}: 'options.{stage}.{name}'"
+            param = next((p for p in command.params if f"--{name}" in p.opts), None)
+            if not isinstance(param, click.Option):
                 raise GoiError(
-                    f"{batch.config}: line {line}: 'options.{stage}.{name}': goi {stage} has no "
-                    f"option --{name} (see goi {stage} --help)"
+                    f"{where}: goi {stage} has no option --{name} (see goi {stage} --help)"
                 )
+            if param.is_flag != isinstance(value, bool):
+                want = "true or false (a flag)" if param.is_flag else "a value, not true/false"
+                raise GoiError(f"{where}: --{name} takes {want}")
+            if param.is_flag:
+                continue
+            try:
+                param.type_cast_value(click.Context(command), str(value))
+            except click.BadParameter as e:
+                raise GoiError(f"{where}: {e.message}") from None
 
 
 def register(group: click.Group) -> None:

@@ -147,6 +147,9 @@ def _validate_open(f: h5py.File, expected: str | None) -> tuple[list[str], str]:
                 if not spec.get("optional"):
                     errors.append(f"group '{path[:-8]}' is missing")
                 continue
+            if not isinstance(f[path], h5py.Group):
+                errors.append(f"'{path}' should be a group")
+                continue
             for name, kind in spec.get("attrs", {}).items():
                 _check_attr(errors, path, f[path].attrs, name, kind)
     local_dims: dict[tuple[str, ...], dict[str, int]] = {}

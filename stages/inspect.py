@@ -80,6 +80,7 @@ def _semantic_problems(path: Path, schema: str) -> list[str]:
     """What the artifact's own reader refuses beyond its schema (values, shapes, cross
     references): the very checks every command runs before using it."""
     from stages.query.hyperplanes import read_hyperplanes
+    from stages.query.res_index import check_values, load_res_index
     from stages.query.selection import load_selection
     from stages.semantics.blend_cache import BlendCache
     from stages.semantics.codebook import load_codebook
@@ -93,6 +94,8 @@ def _semantic_problems(path: Path, schema: str) -> list[str]:
         "goi.blend_cache": BlendCache.load,
         "goi.hyperplanes": read_hyperplanes,
         "goi.selection": load_selection,
+        # no bundle here: every view's arrays against the index's own spec, and finite
+        "goi.res_index": lambda p: check_values(idx := load_res_index(p), idx.spec),
     }
     reader = readers.get(schema)
     if reader is None:

@@ -13,13 +13,24 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from schemas import current_version, definition
 from stages.core.errors import GoiError
 from stages.core.files import read_text
-from stages.query.prompts import safe_name
+from stages.query.prompts import (
+    check_plain_name,
+    check_prompt,
+    load_text_embeddings,
+    safe_name,
+    text_embedding,
+)
+from stages.query.res import ResFiles, checked_index
+from stages.query.res_index import indexable_bundle
 from stages.scene.scene import load_scene
+
+if TYPE_CHECKING:
+    from stages.models.bundle import Bundle
 
 SCHEMA = "goi.batch"
 #: The goi commands a scene's `options` may add to, in the order a scene runs them.
@@ -48,12 +59,13 @@ class Node:
     line: int
 
 
-def read_config(path: Path) -> Node:
+def read_config(path: Path, what: str = "batch configuration") -> Node:
     """The file as a tree of Nodes; YAML or JSON, one key twice is refused."""
     import yaml
 
-    text = read_text(path, "batch configuration", MAX_BYTES)
+    text = read_text(path, what, MAX_BYTES)
     try:
+        _bounded(text, path)  # before composing: PyYAML's composer recurses once per level
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
@@ -61,8 +73,32 @@ def read_config(path: Path) -> Node:
         problem = getattr(e, "problem", None) or str(e).splitlines()[0]
         raise GoiError(f"{path}: not valid YAML or JSON{where}: {problem}") from None
     if root is None:
-        raise GoiError(f"{path}: empty; a batch configuration lists its scenes")
+        raise GoiError(f"{path}: empty; a {what} is a YAML mapping")
     return _tree(root, path, [0], 0)
+
+
+def _too_big(path: Path, line: int) -> GoiError:
+    return GoiError(
+        f"{path}: line {line}: nested deeper than {MAX_DEPTH} levels or more than "
+        f"{MAX_VALUES} values (YAML aliases?); a batch configuration is a short list"
+    )
+
+
+def _bounded(text: str, path: Path) -> None:
+    """Nesting and size from the parser's events, which come without recursion: a 5,000-deep
+    `[[[...]]]` is refused here, not met by the composer's recursion. (Aliases are not
+    expanded by the parser: `_tree` bounds what they make.)"""
+    import yaml
+
+    depth = events = 0
+    for ev in yaml.parse(text, Loader=yaml.SafeLoader):
+        events += 1
+        if isinstance(ev, yaml.CollectionStartEvent):
+            depth += 1
+        elif isinstance(ev, yaml.CollectionEndEvent):
+            depth -= 1
+        if depth > MAX_DEPTH or events > MAX_VALUES:
+            raise _too_big(path, ev.start_mark.line + 1)
 
 
 def _tree(node: Any, path: Path, count: list[int], depth: int) -> Node:
@@ -71,10 +107,7 @@ def _tree(node: Any, path: Path, count: list[int], depth: int) -> Node:
     line = node.start_mark.line + 1
     count[0] += 1
     if depth > MAX_DEPTH or count[0] > MAX_VALUES:
-        raise GoiError(
-            f"{path}: line {line}: nested deeper than {MAX_DEPTH} levels or more than "
-            f"{MAX_VALUES} values (YAML aliases?); a batch configuration is a short list"
-        )
+        raise _too_big(path, line)
     if isinstance(node, yaml.MappingNode):
         out: dict[str, Node] = {}
         for k, v in node.value:
@@ -202,7 +235,9 @@ class SceneJob:
     query_args: list[str]  # text, RES source, --lift
     index_bundle: str | None  # build OUT/<name>/res_index.h5 with this bundle
     options: dict[str, list[str]]  # stage -> its extra arguments
-    option_lines: dict[tuple[str, str], int]  # (stage, option name) -> its line in the file
+    #: (stage, option name) -> its line in the file and its value (checked by the CLI, which
+    #: knows the commands' options)
+    option_values: dict[tuple[str, str], tuple[int, Any]]
     prompts: list[Prompt] = field(default_factory=list)
     #: more files whose change reruns a stage: the feature maps or the encoder's manifest
     #: (extract); the text embeddings, the bundle's manifest, a given RES index (query)
@@ -270,8 +305,9 @@ def load_batch(path: Path, out: Path | None = None) -> Batch:
         raise c.fail(scenes_node, "scenes", "is empty; list at least one scene")
     scenes: list[SceneJob] = []
     seen: dict[str, SceneJob] = {}
+    loaded = _Loaded()
     for i, node in enumerate(scenes_node.value):
-        job = _scene(c, node, f"scenes[{i}]", defaults, base)
+        job = _scene(c, node, f"scenes[{i}]", defaults, base, loaded)
         other = seen.get(job.name.lower())  # case-insensitive file systems too
         if other is not None:
             raise GoiError(
@@ -283,7 +319,38 @@ def load_batch(path: Path, out: Path | None = None) -> Batch:
     return Batch(path, out, scenes)
 
 
-def _scene(c: Checker, node: Node, key: str, defaults: dict[str, Node], base: Path) -> SceneJob:
+class _Loaded:
+    """The inputs the stages' own checks read, each once per batch (a bundle, an embeddings
+    table), so many scenes sharing one cost one check."""
+
+    def __init__(self) -> None:
+        self.bundles: dict[Path, Bundle] = {}
+        self.tables: dict[Path, dict] = {}
+
+    def indexable(self, path: Path) -> Bundle:
+        key = path.resolve()
+        if key not in self.bundles:
+            self.bundles[key] = indexable_bundle(path, "'bundle'")
+        return self.bundles[key]
+
+    def embedding(self, path: Path, text: str) -> None:
+        """The query's embedding of `text` is in the file (its own check, its own message)."""
+        key = path.resolve()
+        if key not in self.tables:
+            self.tables[key] = load_text_embeddings(path)
+        table = self.tables[key]
+        if text not in table:
+            text_embedding(text, next(iter(table.values())).size, path)  # raises, naming it
+            raise AssertionError("text_embedding found a text the table lacks")
+
+    def res_files(self, res_masks: Path, prompt_id: str | None, text: str) -> list[str]:
+        """The prompt's mask files, found as the query finds them (refused as it refuses)."""
+        return _files(ResFiles(res_masks, prompt_id, text).dir, "*.png")
+
+
+def _scene(
+    c: Checker, node: Node, key: str, defaults: dict[str, Node], base: Path, loaded: _Loaded
+) -> SceneJob:
     own: dict[str, Node] = node.value
     merged = {**defaults, **own}
 
@@ -352,9 +419,21 @@ def _scene(c: Checker, node: Node, key: str, defaults: dict[str, Node], base: Pa
         if bundle is None:
             raise c.fail(where("res_index"), f"{key}.res_index", "is true but no 'bundle' is given")
         index_bundle = str(bundle.resolve())
+        try:  # what goi index-res checks first: a bundle with an image side, every photo
+            loaded.indexable(bundle)
+            for cam in scene.views("train"):
+                scene.image_path(cam)  # raises, naming a photo that is not there
+        except GoiError as e:
+            raise c.fail(where("res_index"), f"{key}.res_index", f"cannot be built: {e}") from None
     elif isinstance(res_index, str):
         index = exists("res_index")
         assert index is not None
+        try:  # the query's own check: this scene's views and images, this bundle
+            if res_masks is not None:
+                raise GoiError("'res_masks' is given too; a query reads one RES source")
+            checked_index(index, loaded.indexable(bundle) if bundle else None, scene)
+        except GoiError as e:
+            raise c.fail(where("res_index"), f"{key}.res_index", f"cannot be used: {e}") from None
         query_args += ["--res-index", str(index.resolve())]
     lift = bool(get("lift"))
     if lift:
@@ -367,22 +446,36 @@ def _scene(c: Checker, node: Node, key: str, defaults: dict[str, Node], base: Pa
         )
 
     options: dict[str, list[str]] = {}
-    option_lines: dict[tuple[str, str], int] = {}
+    option_values: dict[tuple[str, str], tuple[int, Any]] = {}
     for stage in STAGES:
         merged_opts: dict[str, Node] = {}
         for source in (defaults, own):
             if "options" in source and stage in source["options"].value:
                 merged_opts.update(source["options"].value[stage].value)
         options[stage] = _args(merged_opts)
-        option_lines.update({(stage, k): v.line for k, v in merged_opts.items()})
+        option_values.update({(stage, k): (v.line, v.value) for k, v in merged_opts.items()})
 
     prompts_node = merged.get("prompts")
     if prompts_node is None or not prompts_node.value:
         raise GoiError(f"{c.path}: line {node.line}: {key} has no prompts (here or in defaults)")
+    pkey = f"{key}.prompts" if "prompts" in own else "defaults.prompts"
+    embeddings = local("text_embeddings")
+    if extract_args is not None and embeddings is None and bundle is None:
+        raise GoiError(
+            f"{c.path}: line {node.line}: {key} goes the paper's route, whose queries need each "
+            "prompt's text embedding: give 'text_embeddings' or a 'bundle' with a text encoder"
+        )
     prompts: list[Prompt] = []
     by_key: dict[str, int] = {}
-    for p in prompts_node.value:
-        text, pid = (p.value, None) if isinstance(p.value, str) else _prompt(p)
+    for i, p in enumerate(prompts_node.value):
+        raw, pid = (p.value, None) if isinstance(p.value, str) else _prompt(p)
+        at = f"{c.path}: line {p.line}: '{pkey}[{i}]'"
+        # What goi query does with the text and the id, so the answer lands where the
+        # workflow expects it (`goi query` strips the text before it names the answer).
+        text = check_prompt(raw, at)
+        if pid is not None:
+            at_id = f"{c.path}: line {p.line}: '{pkey}[{i}].id'"
+            check_plain_name(pid, at_id, "a subdirectory of 'res_masks'")
         k = safe_name(text)
         if k in by_key:
             raise GoiError(
@@ -390,19 +483,42 @@ def _scene(c: Checker, node: Node, key: str, defaults: dict[str, Node], base: Pa
                 f"line {by_key[k]}); both would write the same answer"
             )
         by_key[k] = p.line
-        masks = _files(res_masks / (pid or k), "*.png") if res_masks is not None else []
-        prompts.append(Prompt(text, pid, k, masks or _files(res_masks, "*.png")))
-    inputs = [str(scene.ply_path.resolve()), *(str(f.resolve()) for f in scene.camera_files)]
-    extract_inputs = [*_files(features, "*.npy"), *_files(features, "*.pt")]
-    extract_inputs += _files(feature_bundle, "manifest.json")
-    query_inputs = [*_files(bundle, "manifest.json")]
+        try:
+            if extract_args is not None and embeddings is not None:
+                loaded.embedding(embeddings, text)
+            masks = loaded.res_files(res_masks, pid, text) if res_masks is not None else []
+        except GoiError as e:
+            raise GoiError(f"{at}: {e}") from None
+        prompts.append(Prompt(text, pid, k, masks))
+
+    def literal(name: str, files: list[str]) -> list[str]:
+        """Files the workflow lists as inputs, which Snakemake reads as patterns: `{x}` in a
+        path would be a wildcard (its patterns have no escape), so such a path is refused."""
+        from snakemake_interface_storage_plugins.io import WILDCARD_REGEX
+
+        for f in files:
+            m = WILDCARD_REGEX.search(f)
+            if m is not None:
+                raise c.fail(
+                    where(name), f"{key}.{name}", f"{f}: Snakemake would read {m.group(0)!r} "
+                    "in this path as a wildcard; rename it (or link it) without braces"
+                )  # fmt: skip
+        return files
+
+    scene_files = [scene.ply_path, *scene.camera_files]
+    inputs = literal("scene" if scene_dir else "ply", [str(f.resolve()) for f in scene_files])
+    extract_inputs = literal("features", [*_files(features, "*.npy"), *_files(features, "*.pt")])
+    extract_inputs += literal("feature_bundle", _files(feature_bundle, "manifest.json"))
+    query_inputs = literal("bundle", _files(bundle, "manifest.json"))
     for k in ("text_embeddings", "res_index"):
         p = local(k)
         if p is not None and p.is_file():
-            query_inputs.append(str(p.resolve()))
+            query_inputs += literal(k, [str(p.resolve())])
+    for prompt in prompts:
+        literal("res_masks", prompt.masks)
     return SceneJob(
         name, node.line, scene_args, inputs, extract_args, query_args, index_bundle, options,
-        option_lines, prompts, extract_inputs, query_inputs,
+        option_values, prompts, extract_inputs, query_inputs,
     )  # fmt: skip
 
 

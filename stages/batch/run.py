@@ -6,6 +6,13 @@ metadata (`.snakemake/`) lives there, so a rerun of the same batch runs only wha
 date; goi's own lock there refuses a second `goi batch` of one output directory. The summary
 is made from the files the jobs wrote (each rule's benchmark and log), not from Snakemake's
 messages.
+
+goi batch owns Snakemake's command line. Snakemake on its own loads a workflow profile from
+the working directory (`profiles/default/`) and a profile named by $SNAKEMAKE_PROFILE; a
+profile can set any option, `config: [python=...]` included, which would make any program the
+interpreter of every job. So no profile is loaded unless `--profile` names one, the
+options goi sets itself are refused after `--` and in that profile (`OWNED`), and OUT is
+goi batch's own: new, empty, or made by goi batch (`OUT/.goi-batch/`), unless `--force`.
 """
 
 from __future__ import annotations
@@ -13,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import csv
 import importlib.util
-import json
 import os
 import subprocess
 import sys
@@ -23,8 +29,9 @@ from pathlib import Path
 from typing import Annotated
 
 from stages.batch.config import Batch, Prompt, SceneJob
+from stages.core.artifacts import write_json
 from stages.core.errors import GoiError
-from stages.core.files import make_dir, output_lock, refuse_if_input
+from stages.core.files import check_output_name, make_dir, output_lock
 from stages.core.params import Range
 from stages.core.report import SILENT, Report
 
@@ -48,6 +55,14 @@ class BatchRun:
     """Show the jobs that would run, and why, without running them."""
     keep_going: bool = False
     """Go on with the jobs that do not depend on a failed one."""
+    profile: Path | None = None
+    """A Snakemake profile (its directory, holding config.yaml or profile.yaml, or that file),
+    e.g. a cluster's settings. No other profile is ever loaded: not $SNAKEMAKE_PROFILE, not a
+    profiles/ directory where goi batch is started. The options goi batch sets itself may not
+    be in it."""
+    force: bool = False
+    """Run in an --out that holds files goi batch did not make (Snakemake replaces the
+    outputs it reruns, e.g. a features.h5 of yours in OUT/<scene>/)."""
 
 
 @dataclass
@@ -95,34 +110,138 @@ def snakemake_available() -> None:
         raise GoiError(f"goi batch needs Snakemake: {INSTALL}")
 
 
+#: Snakemake's options (their argparse dest) that goi batch sets itself, and why: refused
+#: after `--` and in a --profile, under any spelling (`-C`, `--configf`, `-nd DIR`).
+OWNED = {
+    "snakefile": "it runs its own workflow",
+    "directory": "the workflow runs in OUT: use goi batch --out",
+    "configfile": "its plan, OUT/.goi-batch/plan.json, is the workflow's configuration",
+    "config": "its plan, OUT/.goi-batch/plan.json, is the workflow's configuration",
+    "profile": "name a profile with goi batch --profile",
+    "workflow_profile": "name a profile with goi batch --profile",
+    "nolock": "it locks OUT itself",
+    "unlock": "it locks OUT itself",
+}
+#: The state directory of goi batch in OUT; it also marks OUT as goi batch's own.
+STATE = ".goi-batch"
+
+
+def check_snakemake_args(extra: list[str], where: str = "after --") -> None:
+    """Refuse any of the OWNED options among Snakemake's own arguments, resolved the way
+    Snakemake's parser resolves them (abbreviations, `--opt=value`, clustered short options)."""
+    if not extra:
+        return
+    from snakemake.cli import get_argument_parser
+
+    actions = get_argument_parser()._option_string_actions  # option string -> argparse action
+    for tok in extra:
+        if tok == "--":  # Snakemake's own: targets follow
+            break
+        if not tok.startswith("-") or tok == "-":
+            continue
+        if tok.startswith("--"):
+            name = tok.split("=", 1)[0]
+            hits = [name] if name in actions else [o for o in actions if o.startswith(name)]
+        else:  # -nd DIR: each letter an option until one takes the rest as its value
+            hits = []
+            for ch in tok[1:]:
+                action = actions.get(f"-{ch}")
+                if action is None:
+                    break
+                hits.append(f"-{ch}")
+                if action.nargs != 0:
+                    break
+        for option in hits:
+            dest = actions[option].dest
+            if dest in OWNED:
+                canonical = next(o for o in actions[option].option_strings if o.startswith("--"))
+                raise GoiError(
+                    f"{tok[:80]} ({where}): goi batch sets Snakemake's {canonical} itself "
+                    f"({OWNED[dest]}); leave it out"
+                )
+
+
+def profile_file(profile: Path) -> Path:
+    """The YAML file of a profile named with --profile, found as Snakemake finds it in a
+    directory, with none of the options goi batch sets (OWNED) among its keys."""
+    from snakemake.cli import get_profile_dir
+
+    from stages.batch.config import read_config
+
+    p = Path(os.path.expanduser(profile))
+    if not p.exists():
+        raise GoiError(f"--profile: {p}: no such file or directory (a Snakemake profile)")
+    found = get_profile_dir(str(p.resolve()))
+    if found is None:
+        raise GoiError(f"--profile: {p} holds no config.yaml or profile.yaml (a Snakemake profile)")
+    yaml_file = found[1].resolve()
+    root = read_config(yaml_file, "Snakemake profile")
+    if not isinstance(root.value, dict):
+        raise GoiError(f"--profile: {yaml_file}: not a mapping of Snakemake options")
+    for key, node in root.value.items():  # a key is an option: `jobs` or `--jobs`
+        option = key if key.startswith("--") else f"--{key}"
+        check_snakemake_args([option], f"--profile {yaml_file}: line {node.line}")
+    return yaml_file
+
+
+def check_out(out: Path, force: bool) -> None:
+    """OUT is goi batch's: new, empty, or made by goi batch (its state directory); else
+    refused without --force, before anything is written: Snakemake deletes an output it is
+    about to make again, whoever made it."""
+    check_output_name(out, "--out")
+    if out.exists() and not out.is_dir():
+        raise GoiError(f"--out: {out} is a file; goi batch writes a directory")
+    state = out / STATE
+    if state.is_symlink() or (state.exists() and not state.is_dir()):
+        raise GoiError(f"--out: {state} is not goi batch's state directory (a link, a file?)")
+    if force or not out.is_dir() or state.is_dir():
+        return
+    theirs = sorted(p.name for p in out.iterdir())
+    if theirs:
+        raise GoiError(
+            f"--out: {out} holds files goi batch did not make (e.g. {theirs[0][:60]}); "
+            "Snakemake would replace those it writes: choose a new directory, or pass --force"
+        )
+
+
 def run_batch(
     batch: Batch, run: BatchRun, extra: list[str], report: Report = SILENT
 ) -> BatchResult:
     """Run the batch's workflow (`extra`: Snakemake's own arguments) and summarise it."""
     snakemake_available()
-    out = make_dir(run.out or batch.out, "--out").resolve()
-    state = make_dir(out / ".goi-batch", "--out")
+    check_snakemake_args(extra)
+    profile = profile_file(run.profile) if run.profile is not None else None
+    out = Path(run.out or batch.out)
+    check_out(out, run.force)
+    out = make_dir(out, "--out").resolve()
+    state = make_dir(out / STATE, "--out")
     # One goi batch per output directory, dry runs included: the plan a running batch's jobs
     # read (a cluster job reads it again) is never rewritten under them, and the summary never
     # counts another run's jobs as this one's.
     with output_lock(state / "run", "--out"):
-        return _run(batch, run, extra, out, state, report)
+        return _run(batch, run, extra, out, state, profile, report)
 
 
 def _run(
-    batch: Batch, run: BatchRun, extra: list[str], out: Path, state: Path, report: Report
+    batch: Batch,
+    run: BatchRun,
+    extra: list[str],
+    out: Path,
+    state: Path,
+    profile: Path | None,
+    report: Report,
 ) -> BatchResult:
     plan = state / "plan.json"
-    refuse_if_input(plan, "--out")
-    tmp = plan.with_name(plan.name + ".tmp")
-    tmp.write_text(json.dumps(batch.plan(sys.executable), indent=1))
-    tmp.replace(plan)
+    write_json(plan, batch.plan(sys.executable), force=True)
     # The targets come first: Snakemake options such as --configfile or --set-resources take
     # any number of values, and would take targets given after them as theirs.
     cmd = [sys.executable, "-m", "snakemake", "all", *_missing_intermediates(out, batch)]
     cmd += [
         "--snakefile", str(snakefile()), "--directory", str(out), "--jobs", str(run.jobs),
         "--rerun-incomplete", "--configfile", str(plan),
+        # no profile but the one named: not profiles/default/ in the working directory, not
+        # $SNAKEMAKE_PROFILE (also dropped from the environment, for the jobs' Snakemake)
+        "--workflow-profile", "none", "--profile", str(profile) if profile else "none",
     ]  # fmt: skip
     if run.executor != "local":
         cmd += ["--executor", run.executor]
@@ -140,7 +259,8 @@ def _run(
         f"({_count(n_jobs, 'job')} when nothing is done yet) in {out}, executor {run.executor}"
     )
     before = _stamps(out, batch)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env = {k: v for k, v in os.environ.items() if k != "SNAKEMAKE_PROFILE"}
+    env["PYTHONUNBUFFERED"] = "1"
     # Snakemake prints its own progress; it goes to stderr (file descriptor 2) with goi's
     # news, and the table to stdout. A dry run has no table: what Snakemake prints on stdout
     # (e.g. `-- --dag`, the graph in DOT) stays there.

@@ -12,6 +12,12 @@ finished, when it was made from the same bundle and images) and renamed into pla
 It records the bundle's digest and each view's image digest; `check_res_index` refuses an index
 made with another bundle, from another scene or image set, or lacking views, naming what
 differs.
+
+An index is read like every artifact: its links all hard links inside the file (no external
+or soft link, no dataset stored in another file), views as groups, each array of the declared
+dtype and shape, which must be the bundle's, and finite values (a NaN in an index is an index
+error, not "the RES found nothing"). A resumed `.partial` keeps only views that pass the same
+reader, and the finished file is read once more before it is renamed into place.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from stages.core.files import (
     output_lock,
     partial_exists,
     refuse_inputs,
+    regular_file,
 )
 from stages.core.report import SILENT, Report
 from stages.core.staging import kept_on_interrupt
@@ -44,6 +51,9 @@ SCHEMA = "goi.res_index"
 
 #: The per-view attribute written after a view's arrays: its presence marks the view complete.
 DONE_ATTR = "image_sha256"
+#: No RES image side stores more than this per array (SAM ViT-H: 2 MiB, OWLv2 large: ~10 MiB):
+#: a spec declaring more is refused before any array is read.
+MAX_ARRAY_BYTES = 1 << 30
 
 
 @dataclass
@@ -88,6 +98,12 @@ def indexable_bundle(bundle_dir: Path | Bundle, option: str = "--bundle") -> Bun
     return bundle
 
 
+def bundle_spec(bundle: Bundle) -> dict[str, tuple[tuple[int, ...], str]]:
+    """The arrays the bundle's RES image side returns: key -> (shape, dtype name)."""
+    return {k: (tuple(int(n) for n in s), str(np.dtype(d))) for k, (s, d) in
+            bundle.res_image_side_spec().items()}  # fmt: skip
+
+
 def _partial(out: Path) -> Path:
     return out.with_name(out.name + ".partial")
 
@@ -106,8 +122,7 @@ def build_res_index(scene: Scene, run: ResIndexRun, report: Report = SILENT) -> 
     )
     bundle = indexable_bundle(Path(run.bundle))
     digests = image_digests(scene, cams)
-    spec = {k: (tuple(int(n) for n in s), str(np.dtype(d))) for k, (s, d) in
-            bundle.res_image_side_spec().items()}  # fmt: skip
+    spec = bundle_spec(bundle)
     inputs = {
         "bundle": bundle.digest(),
         "images": _combined(digests),
@@ -137,8 +152,11 @@ def _build(
                 same = json.loads(f.attrs.get("inputs", "{}")) == inputs
         except (OSError, ValueError):
             same = False
-        mode = "r+" if same else "w"
-        if same:
+        problem = _unsound_partial(partial, spec, digests) if same else None
+        mode = "r+" if same and problem is None else "w"
+        if problem is not None:
+            report.log(f"{partial}: {problem}; building the index again")
+        elif same:
             report.log(f"resuming {partial}")
     if mode == "w":
         create_partial(partial, "--out")
@@ -174,6 +192,8 @@ def _build(
                 f.flush()
             f.attrs["n_views"] = len(cams)
             stamp(f, SCHEMA, inputs)  # `created` becomes the time the last view was written
+        # read back as a query will read it (resumed views included) before it is renamed
+        check_values(load_res_index(partial), spec)
     with open(partial, "rb+") as fh:
         os.fsync(fh.fileno())
     os.replace(partial, out)
@@ -184,10 +204,39 @@ def _build(
     return out
 
 
+def _unsound_partial(
+    partial: Path, spec: dict[str, tuple[tuple[int, ...], str]], digests: dict[str, str]
+) -> str | None:
+    """Why the finished views of a partial index (same inputs) cannot be kept, or None: they
+    must pass the index's own reader, hold this bundle's arrays and this image's digest."""
+    try:
+        _links_inside(partial)
+        with h5py.File(partial, "r") as f:
+            views = f.get("views", getlink=True)
+            if not isinstance(views, h5py.HardLink) or not isinstance(f["views"], h5py.Group):
+                return "'views' is not a group"
+            for name in f["views"]:
+                g = f["views"][name]
+                if not isinstance(g, h5py.Group):
+                    return f"'views/{name}' is not a group"
+                if DONE_ATTR not in g.attrs:
+                    continue  # cut off while being written: made again
+                if str(g.attrs[DONE_ATTR]) != digests.get(name):
+                    return f"view '{name}' was indexed from another image"
+                arrays = {k: g[k][()] for k in spec if isinstance(g.get(k), h5py.Dataset)}
+                _check_arrays(arrays, spec, f"view '{name}'")
+    except GoiError as e:
+        return str(e)
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+        return f"unreadable ({str(e)[:120]})"
+    return None
+
+
 def _check_arrays(
     arrays: dict[str, np.ndarray], spec: dict[str, tuple[tuple[int, ...], str]], where: str
 ) -> None:
-    """The image side's arrays against the declared spec (shape and dtype per key)."""
+    """The image side's arrays against the declared spec (shape and dtype per key), and
+    their values finite."""
     for key, (shape, dtype) in spec.items():
         a = arrays.get(key)
         if a is None:
@@ -197,6 +246,41 @@ def _check_arrays(
                 f"{where}: array '{key}' is {a.dtype} {list(a.shape)}, the bundle declares "
                 f"{dtype} {list(shape)}"
             )
+        if a.dtype.kind in "fc" and not np.isfinite(a).all():
+            raise GoiError(
+                f"{where}: array '{key}' holds NaN or infinite values; build the index again "
+                "(goi index-res)"
+            )
+
+
+def _links_inside(path: Path) -> None:
+    """Every object of the index reached by a hard link and stored in the file: an external
+    link, a soft link or a dataset whose data lives in another file (external storage, a
+    virtual dataset) would make a reader open what the index names."""
+    try:
+        with h5py.File(path, "r") as f:
+            todo: list[tuple[str, h5py.Group]] = [("", f)]
+            while todo:
+                prefix, g = todo.pop()
+                for name in g:
+                    where = f"{prefix}{name}"
+                    link = g.get(name, getlink=True)
+                    if not isinstance(link, h5py.HardLink):
+                        raise GoiError(
+                            f"{path}: '{where}' is a {type(link).__name__} (to "
+                            f"{getattr(link, 'filename', '') or getattr(link, 'path', '?')}); "
+                            "an index holds its arrays itself"
+                        )
+                    obj = g[name]
+                    if isinstance(obj, h5py.Group):
+                        todo.append((f"{where}/", obj))
+                    elif isinstance(obj, h5py.Dataset) and (obj.external or obj.is_virtual):
+                        raise GoiError(
+                            f"{path}: dataset '{where}' keeps its data in another file; an "
+                            "index holds its arrays itself"
+                        )
+    except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
+        raise GoiError(f"{path}: not a readable HDF5 file ({str(e)[:200]})") from None
 
 
 @dataclass
@@ -222,14 +306,26 @@ class ResIndex:
 
 
 def load_res_index(path: str | os.PathLike[str]) -> ResIndex:
-    """Open and validate an index (schema, version, every view complete)."""
+    """Open and validate an index (links, schema, version, every view complete and of the
+    declared arrays); the values are read by `check_values`."""
     p = Path(path)
+    regular_file(p, "RES index")
+    _links_inside(p)  # before the validator follows any link
     with open_h5(p, SCHEMA) as f:
         try:
             raw = json.loads(str(f.attrs["arrays"]))
             spec = {k: (tuple(int(n) for n in s), str(np.dtype(d))) for k, (s, d) in raw.items()}
-        except (ValueError, TypeError, KeyError) as e:
+        except (ValueError, TypeError, KeyError, AttributeError) as e:
             raise GoiError(f"{p}: attribute 'arrays' is not a valid array spec ({e})") from None
+        for key, (shape, dtype) in spec.items():
+            if (
+                min(shape, default=1) < 0
+                or np.prod(shape, dtype=object) * np.dtype(dtype).itemsize > MAX_ARRAY_BYTES
+            ):
+                raise GoiError(
+                    f"{p}: attribute 'arrays' declares '{key}' {dtype} {list(shape)}, beyond "
+                    f"any RES image side ({MAX_ARRAY_BYTES >> 20} MiB an array)"
+                )
         views: dict[str, str] = {}
         sizes: dict[str, tuple[int, int]] = {}
         for name, g in f["views"].items():
@@ -248,9 +344,27 @@ def load_res_index(path: str | os.PathLike[str]) -> ResIndex:
         )
 
 
+def check_values(index: ResIndex, spec: dict[str, tuple[tuple[int, ...], str]]) -> None:
+    """Every view's arrays read once: the bundle's `spec` (key, shape, dtype), finite values."""
+    if index.spec != spec:
+        key = next(
+            (k for k in sorted({*spec, *index.spec}) if index.spec.get(k) != spec.get(k)), "?"
+        )
+        have, want = index.spec.get(key), spec.get(key)
+        raise GoiError(
+            f"{index.path}: array '{key}' is declared "
+            f"{f'{have[1]} {list(have[0])}' if have else 'nowhere'}, but the bundle's image "
+            f"side is {f'{want[1]} {list(want[0])}' if want else 'without it'}; build the index "
+            "again (goi index-res)"
+        )
+    for view in index.views:
+        index.image_side(view)
+
+
 def check_res_index(index: ResIndex, scene: Scene, bundle: Bundle, cams: list[Camera]) -> None:
     """Refuse an index that does not answer for these views of this scene with this bundle,
-    naming what differs (bundle, scene, image set, missing views)."""
+    naming what differs (bundle, scene, image set, missing views, the arrays and their
+    values)."""
     where = f"--res-index: {index.path}"
     digest = bundle.digest()
     if digest != index.bundle_sha256:
@@ -272,6 +386,13 @@ def check_res_index(index: ResIndex, scene: Scene, bundle: Bundle, cams: list[Ca
             f"{where} lacks view '{missing[0]}'{more} of the {len(cams)} asked for; build the "
             "index again for this scene (goi index-res)"
         )
+    odd = next((c for c in held if index.sizes[c.name] != (c.width, c.height)), None)
+    if odd is not None:
+        w, h = index.sizes[odd.name]
+        raise GoiError(
+            f"{where}: view '{odd.name}' was indexed at {w}x{h}, the scene's camera is "
+            f"{odd.width}x{odd.height}: it was made from another scene"
+        )
     now = image_digests(scene, held)
     changed = [c for c in held if now[c.name] != index.views[c.name]]
     if changed:
@@ -281,6 +402,10 @@ def check_res_index(index: ResIndex, scene: Scene, bundle: Bundle, cams: list[Ca
             f"is not the one indexed{more}: it was made from another image set; build the "
             "index again (goi index-res)"
         )
+    try:
+        check_values(index, bundle_spec(bundle))
+    except GoiError as e:
+        raise GoiError(f"--res-index: {e}") from None
 
 
 def _name(cam: Camera | None) -> str | None:

@@ -3,7 +3,10 @@
 `goi fit-field --distributed` runs under torchrun (one process per rank, rendezvous by c10d).
 The fit's kernels are numba on the CPU, so the backend is gloo whatever the machine has. Every
 collective waits at most the run's timeout, and a failure (another rank gone, a timeout)
-becomes one GoiError line instead of a hang or a traceback.
+becomes one GoiError line instead of a hang or a traceback. torch's C++ side logs its own
+retries and errors, each with a C++ stack trace, straight to file descriptor 2 (a rank with no
+rank 0 printed five of them under goi's line); what it writes during the rendezvous and the
+collectives is kept out of the terminal (shown with GOI_DEBUG=1 when the collective fails).
 """
 
 from __future__ import annotations
@@ -73,15 +76,52 @@ class Ranks:
 @contextlib.contextmanager
 def collective(what: str, timeout_s: float) -> Iterator[None]:
     """Turn a failed collective into one line: gloo raises when a peer's connection closes
-    (that rank stopped) or when the timeout passes."""
+    (that rank stopped) or when the timeout passes. torch's C++ log of it goes elsewhere."""
+    with _cpp_log() as log:
+        try:
+            yield
+        except (RuntimeError, ValueError, OSError) as e:  # DistError is a RuntimeError
+            first = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
+            log.failed = True
+            raise GoiError(
+                f"--distributed: {what} failed (another rank stopped, or none answered within "
+                f"--dist-timeout-s {timeout_s:g}): {first}"
+            ) from None
+
+
+class _CppLog:
+    """Where file descriptor 2 goes while torch's C++ side may log: one temporary file per
+    process, emptied after each use."""
+
+    file: Any = None
+    failed = False
+
+
+@contextlib.contextmanager
+def _cpp_log() -> Iterator[_CppLog]:
+    """File descriptor 2 (where c10's logging writes, below Python's sys.stderr) sent to a
+    temporary file while the block runs; written out after all only when it failed and
+    GOI_DEBUG is set."""
+    import sys
+    import tempfile
+
+    log = _CppLog()
+    if _CppLog.file is None:
+        _CppLog.file = tempfile.TemporaryFile()
+    sys.stderr.flush()
+    saved = os.dup(2)
+    os.dup2(_CppLog.file.fileno(), 2)
     try:
-        yield
-    except (RuntimeError, ValueError, OSError) as e:  # DistError is a RuntimeError
-        first = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
-        raise GoiError(
-            f"--distributed: {what} failed (another rank stopped, or none answered within "
-            f"--dist-timeout-s {timeout_s:g}): {first}"
-        ) from None
+        yield log
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        f = _CppLog.file
+        if log.failed and os.environ.get("GOI_DEBUG", "") not in ("", "0"):
+            f.seek(0)
+            sys.stderr.write(f.read().decode("utf-8", "replace"))
+        f.seek(0)
+        f.truncate()
 
 
 def rank_threads(threads: int, local_world: int) -> int:
@@ -118,6 +158,39 @@ def torchrun_env() -> tuple[int, int, int]:
     return rank, world, local_world
 
 
+#: How much longer than --dist-timeout-s the rendezvous may take before it is given up: c10d
+#: waits that long for the other ranks, then fails by itself; this margin is for the
+#: connection, whose reply c10d waits for without a limit.
+RENDEZVOUS_MARGIN_S = 10.0
+
+
+def _rendezvous(timeout_s: float) -> None:
+    """init_process_group, in a thread that is given up after the timeout (and a margin): a
+    MASTER_PORT answered by a service that is not a torch rendezvous accepts the connection
+    and never replies, and c10d would wait for it forever, deaf to SIGTERM."""
+    import threading
+
+    failed: list[BaseException] = []
+
+    def join() -> None:
+        try:
+            dist.init_process_group("gloo", timeout=timedelta(seconds=timeout_s))
+        except BaseException as e:  # handed to the caller's thread
+            failed.append(e)
+
+    t = threading.Thread(target=join, name="goi-rendezvous", daemon=True)
+    t.start()
+    t.join(timeout_s + RENDEZVOUS_MARGIN_S)
+    if t.is_alive():
+        where = f"{os.environ.get('MASTER_ADDR')}:{os.environ.get('MASTER_PORT')}"
+        raise TimeoutError(
+            f"{where} accepted the connection but never answered as a torch rendezvous "
+            "(is MASTER_PORT another service's?)"
+        )
+    if failed:
+        raise failed[0]
+
+
 def start(timeout_s: float, threads: int) -> Ranks:
     """Join the process group torchrun prepared and check that every rank runs the same goi.
     Threads are set first: torch's and numba's pools, per rank."""
@@ -129,7 +202,7 @@ def start(timeout_s: float, threads: int) -> Ranks:
     numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
     with collective("the rendezvous", timeout_s):
         if not dist.is_initialized():
-            dist.init_process_group("gloo", timeout=timedelta(seconds=timeout_s))
+            _rendezvous(timeout_s)
     ranks = Ranks(rank, world, local_world, timeout_s)
     mine = (stages.__version__, PROTOCOL)
     seen = ranks.gather_objects(mine, "the version check at the rendezvous")

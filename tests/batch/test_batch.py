@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 pytest.importorskip("yaml")
@@ -50,8 +51,21 @@ def snakemake() -> None:
     pytest.importorskip("snakemake")
 
 
+def photographed(scene: Path, out: Path) -> Path:
+    """A copy of a scene directory with an image per camera (what goi index-res reads)."""
+    import shutil
+
+    from stages.scene.scene import load_scene
+
+    shutil.copytree(scene, out)
+    (out / "images").mkdir()
+    for cam in load_scene(out).cameras:
+        cv2.imwrite(str(out / "images" / f"{cam.name}.png"), np.zeros((cam.height, cam.width, 3)))
+    return out
+
+
 @pytest.mark.slow
-def test_the_dry_run_shows_the_graph(scenes, tmp_path, capfd):
+def test_the_dry_run_shows_the_graph(scenes, res_bundles, tmp_path, capfd):
     snakemake()
     cfg = tmp_path / "batch.yaml"
     write_config(cfg, scenes, fieldfree=("c",))
@@ -62,11 +76,12 @@ def test_the_dry_run_shows_the_graph(scenes, tmp_path, capfd):
     assert {k: stats.get(k) for k in want} == want, (cap.out + cap.err)[-3000:]
     assert "index_res" not in stats
     assert not (tmp_path / "goi-batch" / "a" / "features.h5").exists()  # nothing ran
-    # the field-free route with a RES index built first (the bundle is not read by a dry run)
-    bundle = tmp_path / "bundle"
-    bundle.mkdir()
+    # the field-free route with a RES index built first (its bundle and the scene's photos are
+    # checked before the run, as goi index-res checks them)
+    bundle = res_bundles["grounded"]
+    scene = photographed(scenes["c"] / "scene", tmp_path / "scene")
     cfg.write_text(
-        f"scenes:\n  - scene: {scenes['c'] / 'scene'}\n    bundle: {bundle}\n"
+        f"scenes:\n  - scene: {scene}\n    bundle: {bundle}\n"
         "    res_index: true\n    lift: true\n    prompts: [a chair, a lamp]\n"
     )
     assert main(["batch", str(cfg), "--dry-run"]) == 0
@@ -160,10 +175,13 @@ def _error(cfg: Path, text: str) -> str:
 
 def test_configuration_errors_name_the_key_and_its_line(scenes, tmp_path):
     a, b = scenes["a"], scenes["b"]
-    one = f"  - scene: {a / 'scene'}\n    features: {a / 'features'}\n    prompts: [x]\n"
+    one = (
+        f"  - scene: {a / 'scene'}\n    features: {a / 'features'}\n    prompts: [object 1]\n"
+        f"    text_embeddings: {a / 'text.json'}\n"
+    )
     cfg = tmp_path / "c.yaml"
     msg = _error(cfg, "scenes:\n" + one + "    res_mask: r\n")
-    assert msg.startswith(f"{cfg}: line 5: unknown key 'scenes[0].res_mask'")
+    assert msg.startswith(f"{cfg}: line 6: unknown key 'scenes[0].res_mask'")
     msg = _error(cfg, "scenes:\n" + one.replace(str(a / "scene"), str(tmp_path / "gone")))
     assert msg == f"{cfg}: line 2: 'scenes[0].scene' {tmp_path / 'gone'}: no such file or directory"
     # two scenes writing the same output directory (both named after their directory)
@@ -171,10 +189,10 @@ def test_configuration_errors_name_the_key_and_its_line(scenes, tmp_path):
     twin.parent.mkdir()
     twin.symlink_to(b / "scene")
     msg = _error(cfg, "scenes:\n" + one + one.replace(str(a / "scene"), str(twin)))
-    assert msg.startswith(f"{cfg}: line 5: scenes[1] and the scene on line 2 both write ")
+    assert msg.startswith(f"{cfg}: line 6: scenes[1] and the scene on line 2 both write ")
     assert "give one of them another 'name'" in msg
-    msg = _error(cfg, "scenes:\n" + one.replace("[x]", "[x, y, x]"))
-    assert msg.startswith(f"{cfg}: line 4: scenes[0]: the prompt 'x' is given twice")
+    msg = _error(cfg, "scenes:\n" + one.replace("[object 1]", "[object 1, object 2, object 1]"))
+    assert msg.startswith(f"{cfg}: line 4: scenes[0]: the prompt 'object 1' is given twice")
     msg = _error(cfg, f"scenes:\n  - scene: {a / 'scene'}\n    prompts: [x]\n")
     assert "no features source" in msg and "'lift: true' and a RES source" in msg
     msg = _error(cfg, "defaults: {lift: 3}\nscenes:\n" + one)
@@ -198,7 +216,8 @@ def test_the_cli_refuses_a_bad_configuration_in_one_line(scenes, tmp_path, capsy
     cfg = tmp_path / "c.yaml"
     cfg.write_text(
         f"defaults:\n  options:\n    fit-field: {{iteratons: 3}}\nscenes:\n"
-        f"  - scene: {a / 'scene'}\n    features: {a / 'features'}\n    prompts: [x]\n"
+        f"  - scene: {a / 'scene'}\n    features: {a / 'features'}\n    prompts: [object 1]\n"
+        f"    text_embeddings: {a / 'text.json'}\n"
     )
     assert main(["batch", str(cfg)]) == 2
     err = capsys.readouterr().err.strip()
@@ -234,10 +253,18 @@ def test_the_cli_refuses_a_bad_configuration_in_one_line(scenes, tmp_path, capsy
 @pytest.mark.slow
 def test_a_failed_job_is_named_with_its_error_and_the_batch_exits_1(scenes, tmp_path, capfd):
     snakemake()
+    import shutil
+
     c = scenes["c"]
+    # the masks of object 9 are there but damaged: only the job reading them finds out
+    res = tmp_path / "res"
+    shutil.copytree(c / "res" / "o1", res / "o1")
+    (res / "o9").mkdir()
+    for f in (res / "o1").glob("*.png"):
+        (res / "o9" / f.name).write_bytes(b"\x89PNG\r\n\x1a\n not an image")
     cfg = tmp_path / "batch.yaml"
     cfg.write_text(
-        f"scenes:\n  - scene: {c / 'scene'}\n    res_masks: {c / 'res'}\n    lift: true\n"
+        f"scenes:\n  - scene: {c / 'scene'}\n    res_masks: {res}\n    lift: true\n"
         "    options: {query: {export: none}}\n"
         "    prompts: [{text: object 1, id: o1}, {text: object 9, id: o9}]\n"
     )

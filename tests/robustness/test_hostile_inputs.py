@@ -756,17 +756,22 @@ def _run(case: Case, argv: list[str], capsys) -> tuple[int, str]:
     return done.returncode, done.stderr
 
 
+def assert_refused(code: int, err: str, words: tuple[str, ...]) -> None:
+    """Exit 2 and one `goi: error:` line holding every one of `words`, no traceback."""
+    assert code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("goi: error: "), err
+    assert "Traceback" not in err and "internal error" not in err
+    for w in words:
+        assert w in err, (w, err)
+
+
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
 def test_hostile_input(case, world, tmp_path, capsys):
     argv = case.make(world, tmp_path)
     before, world_before = _digest(tmp_path), _digest(world["w"])
     code, err = _run(case, argv, capsys)
-    assert code == 2, err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("goi: error: "), err
-    assert "Traceback" not in err and "internal error" not in err
-    for w in case.words:
-        assert w in err, (w, err)
+    assert_refused(code, err, case.words)
     assert _digest(tmp_path) == before, "the output location or an input changed"
     assert _digest(world["w"]) == world_before, "an input of the shared world changed"
 

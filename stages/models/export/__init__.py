@@ -39,9 +39,11 @@ from stages.core.params import FRACTION, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.models.bundle import MANIFEST, load_bundle
 from stages.models.export.common import (
+    check_config,
     checkpoint_json,
     has_weights,
     load_model,
+    preprocessor,
     tokenizer_json,
     transformers,
 )
@@ -172,6 +174,9 @@ def _source(path: Path, opts: ModelExportParams) -> Source:
             "sentence-transformers model (modules.json), Grounding DINO, OWLv2, SAM, SAM 2 or "
             "CLIPSeg"
         )
+    # what builds the model and what feeds it, checked before anything is built
+    check_config(cfg, src / "config.json", str(model_type))
+    preprocessor(src)
     has_weights(src)
     s = Source(src, kind, cfg, modules=modules)
     if kind == "sam" and opts.sam_size:

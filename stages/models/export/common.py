@@ -106,7 +106,11 @@ def check_safetensors(path: Path) -> None:
         raise GoiError(f"{p}: not a safetensors file (its header is not JSON)") from None
     if not isinstance(header, dict):
         raise GoiError(f"{p}: not a safetensors file (its header is not a JSON object)")
+    meta = header.get("__metadata__", {})
+    if not isinstance(meta, dict) or not all(isinstance(v, str) for v in meta.values()):
+        raise GoiError(f"{p}: its header's __metadata__ is not a mapping of texts")
     data = size - 8 - n
+    ranges: list[tuple[int, int, str]] = []
     for name, t in header.items():
         if name == "__metadata__":
             continue
@@ -121,6 +125,21 @@ def check_safetensors(path: Path) -> None:
             ok = a <= b <= data and b - a == elements * _DTYPE_BYTES[t["dtype"]]
         if not ok:
             raise GoiError(f"{p}: tensor {str(name)[:80]!r} has a broken header entry")
+        assert isinstance(offsets, list)
+        ranges.append((offsets[0], offsets[1], str(name)))
+    # Each tensor owns its bytes: two tensors over the same bytes (aliased or overlapping)
+    # would be two names for one memory, and safetensors refuses them only when loading.
+    ranges.sort()
+    for (_, end, first), (start, _, second) in zip(ranges, ranges[1:], strict=False):
+        if start < end:
+            raise GoiError(
+                f"{p}: tensors {first[:60]!r} and {second[:60]!r} share bytes (overlapping or "
+                "aliased ranges in the header)"
+            )
+        if start != end:
+            raise GoiError(f"{p}: tensor {second[:80]!r} does not start where the one before ends")
+    if ranges and (ranges[0][0] != 0 or ranges[-1][1] != data):
+        raise GoiError(f"{p}: its tensors do not fill the data that follows the header")
 
 
 def _count(v: object) -> bool:
@@ -133,11 +152,13 @@ def load_model(cls: Any, src: Path, what: str) -> Any:
     A checkpoint that leaves more than half of the model's weights uninitialised is refused
     (its config says one architecture, its weights are another's); fewer missing weights are
     named in a warning."""
+    from safetensors import SafetensorError
+
     try:
         model, info = cls.from_pretrained(
             str(src), attn_implementation="eager", use_safetensors=True, output_loading_info=True
         )
-    except (OSError, ValueError, RuntimeError, KeyError, TypeError) as e:
+    except (OSError, ValueError, RuntimeError, KeyError, TypeError, SafetensorError) as e:
         first = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
         raise GoiError(f"{src}: cannot load it as a {what} checkpoint ({first})") from None
     missing = list(info.get("missing_keys", []))
@@ -154,16 +175,139 @@ def load_model(cls: Any, src: Path, what: str) -> Any:
     return model
 
 
+def preprocessor(src: Path) -> dict:
+    """preprocessor_config.json ({} when there is none), its values that goi reads checked:
+    image_mean and image_std 3 finite numbers each (std > 0), size a side in pixels or a
+    mapping of sides."""
+    pre = src / "preprocessor_config.json"
+    if not (pre.exists() or pre.is_symlink()):
+        return {}
+    cfg = checkpoint_json(pre)
+    if not isinstance(cfg, dict):
+        raise GoiError(f"{pre}: expected a JSON object")
+    for key, low in (("image_mean", -1e3), ("image_std", 1e-6)):
+        v = cfg.get(key)
+        if v is not None and not (
+            isinstance(v, list) and len(v) == 3 and all(_number(x, low, 1e3) for x in v)
+        ):
+            raise GoiError(f"{pre}: '{key}' should be 3 numbers in [{low:g}, 1000], found {v!r}")
+    size = cfg.get("size")
+    sides = [v for v in size.values() if v is not None] if isinstance(size, dict) else [size]
+    if size is not None and not all(_number(x, 1, 4096) and isinstance(x, int) for x in sides):
+        raise GoiError(f"{pre}: 'size' should be a side in pixels (1-4096), or a mapping of them")
+    return cfg
+
+
+def _number(v: object, low: float, high: float) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and low <= v <= high
+
+
 def image_stats(src: Path, default_mean: Sequence[float], default_std: Sequence[float]) -> dict:
     """mean, std (and the raw preprocessor config) from preprocessor_config.json, else the
     defaults."""
-    pre = src / "preprocessor_config.json"
-    cfg = checkpoint_json(pre) if pre.is_file() else {}
+    cfg = preprocessor(src)
     mean = [float(v) for v in cfg.get("image_mean", default_mean)]
     std = [float(v) for v in cfg.get("image_std", default_std)]
-    if len(mean) != 3 or len(std) != 3:
-        raise GoiError(f"{pre}: image_mean and image_std need 3 numbers each")
     return {"mean": mean, "std": std, "config": cfg}
+
+
+#: The config.json keys that size a model, by what they count, with the range goi accepts:
+#: beyond what any published checkpoint of the kinds goi exports has (ViT-H: 32 layers, 1280
+#: wide; SAM and SAM 2: 1024 px; OWLv2 large: 1008 px), and small enough that building the
+#: model stays finite (a config declaring 100,000 layers would be built before any weight is
+#: read). A key is an integer, a list of integers (per stage) or null (the default).
+_SIZED = {
+    "layers": (0, 256, (
+        "num_hidden_layers", "encoder_layers", "decoder_layers", "num_layers", "depths",
+        "blocks_per_stage", "iou_head_depth", "memory_attention_num_layers",
+        "memory_fuser_num_layers", "num_query_pool_stages", "extract_layers",
+    )),
+    "widths": (1, 65536, (
+        "hidden_size", "intermediate_size", "projection_dim", "output_channels", "mlp_dim",
+        "iou_head_hidden_dim", "d_model", "embed_dim", "encoder_ffn_dim", "decoder_ffn_dim",
+        "embed_dim_per_stage", "fpn_hidden_size", "memory_attention_hidden_size",
+        "memory_attention_feed_forward_hidden_size", "memory_encoder_hidden_size",
+        "memory_encoder_output_channels", "mask_downsampler_embed_dim", "memory_fuser_embed_dim",
+        "memory_fuser_intermediate_dim", "reduce_dim", "decoder_intermediate_size",
+        "num_channels", "mask_input_channels",
+    )),
+    "heads": (1, 1024, (
+        "num_attention_heads", "num_heads", "encoder_attention_heads", "decoder_attention_heads",
+        "num_attention_heads_per_stage", "decoder_num_attention_heads",
+        "memory_attention_num_attention_heads",
+    )),
+    "pixels": (1, 8192, (
+        "image_size", "image_embedding_size", "backbone_feature_sizes",
+        "memory_attention_rope_feat_sizes", "patch_size", "window_size", "patch_kernel_size",
+        "window_size_per_stage", "window_positional_embedding_background_size",
+        "fpn_kernel_size", "mask_downsampler_kernel_size", "memory_fuser_kernel_size",
+    )),
+    "tokens": (0, 1 << 20, (
+        "vocab_size", "type_vocab_size", "max_position_embeddings", "max_text_len",
+        "num_queries", "num_feature_levels", "num_point_embeddings", "encoder_n_points",
+        "decoder_n_points",
+    )),
+}  # fmt: skip
+_RANGES = {key: (lo, hi) for lo, hi, keys in _SIZED.values() for key in keys}
+
+
+def check_config(cfg: dict, path: Path, model_type: str) -> None:
+    """config.json checked before the model is built: every key that sizes the model in its
+    range (naming the key), and the config's sections those of its model_type (a CLIP config
+    labelled `sam` holds `text_config`, which SAM's has not)."""
+    tf = transformers()
+    # (the mapping is lazy: its .get answers None whatever the key)
+    cls = tf.CONFIG_MAPPING[model_type] if model_type in tf.CONFIG_MAPPING else None
+    subs = getattr(cls, "sub_configs", None) or {}
+    for key, value in cfg.items():
+        if key in subs and value is not None and not isinstance(value, dict):
+            raise GoiError(f"{path}: '{key}' should be a mapping, found {type(value).__name__}")
+        if not (key.endswith("_config") and isinstance(value, dict)):
+            continue
+        if subs and key not in subs:
+            raise GoiError(
+                f"{path}: model_type {model_type!r}, but it holds '{key}', which a "
+                f"{model_type} config has not: is it another model's config.json?"
+            )
+        want = getattr(subs.get(key), "model_type", None)
+        got = value.get("model_type")
+        if want and got is not None and got != want:
+            raise GoiError(
+                f"{path}: model_type {model_type!r}, but '{key}.model_type' is {got!r}, not "
+                f"{want!r}: is it another model's config.json?"
+            )
+    _check_sizes(cfg, path, "")
+
+
+def _check_sizes(cfg: dict, path: Path, prefix: str) -> None:
+    for key, value in cfg.items():
+        if isinstance(value, dict):
+            _check_sizes(value, path, f"{prefix}{key}.")
+            continue
+        if key not in _RANGES or value is None:
+            continue
+        lo, hi = _RANGES[key]
+        flat = _ints(value)
+        if flat is None or not all(lo <= v <= hi for v in flat):
+            raise GoiError(
+                f"{path}: '{prefix}{key}' is {str(value)[:60]}; goi exports checkpoints whose "
+                f"'{key}' is an integer (or a list of them) in [{lo}, {hi}]"
+            )
+
+
+def _ints(value: object) -> list[int] | None:
+    """The integers of an integer or a (nested) list of them, else None."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return [value]
+    if isinstance(value, list) and len(value) <= 64:
+        out: list[int] = []
+        for v in value:
+            sub = _ints(v)
+            if sub is None:
+                return None
+            out += sub
+        return out
+    return None
 
 
 def tokenizer_json(src: Path) -> str:
