@@ -144,9 +144,9 @@ class ViewerApp:
 
     def _connect(self, client: Any) -> None:
         page = Page(self, client)
+        page.build()
         with self.lock:
             self.pages[client.client_id] = page
-        page.build()
 
     def _disconnect(self, client: Any) -> None:
         with self.lock:
@@ -188,6 +188,7 @@ class Page:
         self.chunk_nodes: list[Any] = []
         self.overlay_node: Any = None
         self.closed = threading.Event()
+        self.built = threading.Event()  # its controls and splats exist: answers can be shown
         self.camera_moved = threading.Event()
         self.last_move = 0.0
         self.history_keys: dict[str, tuple[str, str]] = {}
@@ -256,6 +257,7 @@ class Page:
         self._send_scene()
         self.client.camera.on_update(lambda _: self._camera_moved())
         self.mask_thread.start()
+        self.built.set()
         self.refresh_history()
 
     def _send_scene(self) -> None:
@@ -356,6 +358,7 @@ class Page:
 
     def show(self, ans: Answer, note: str = "") -> None:
         """Light the answer up in 3D and say what answered it (a partial or final answer)."""
+        self.built.wait()
         with self.lock:
             if self.closed.is_set():
                 return
