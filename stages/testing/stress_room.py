@@ -21,7 +21,8 @@ errors of real detectors and SAM, seen on rooms goi never saw, are not in them:
   views keep the room's own `res-sam/` mask.
 
 Every other prompt's masks are the base set's, linked. The room is `thin_room`'s extended copy
-(the thin and held-out prompts too), so one eval scores everything:
+(the thin and held-out prompts too), so one eval scores everything; OUT may be a room that
+`thin_room --prompts thin,held-out` made, and the sets join its own:
 
     python -m stages.testing.stress_room ../shared/dev-room OUT \
         [--res support,support-sam,parts-sam] [--mask-seed S]
@@ -238,7 +239,11 @@ def add_stress(room: Path, src: Path, name: str, tools: Path, seed: int = 0) -> 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("src", type=Path, help="the dev room (read only)")
-    ap.add_argument("out", type=Path, help="new directory for the extended copy")
+    ap.add_argument(
+        "out",
+        type=Path,
+        help="new directory for the extended copy, or a room thin_room made (the sets join it)",
+    )
     ap.add_argument(
         "--res", default=",".join(STRESS_SETS), help=f"sets to make, of {','.join(STRESS_SETS)}"
     )
@@ -252,7 +257,14 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--res: name at least one set of {', '.join(STRESS_SETS)}")
     if unknown := [s for s in sets if s not in STRESS_SETS]:
         ap.error(f"--res: unknown set {unknown[0]!r} (known: {', '.join(STRESS_SETS)})")
-    room = extend_room(a.src, a.out, THIN_PROMPTS + HELD_OUT_PROMPTS)
+    if a.out.exists():
+        if not (a.out / "prompts.json").is_file():
+            ap.error(f"{a.out}: exists and is not a room (no prompts.json)")
+        if made := [s for s in sets if (a.out / s).exists()]:
+            ap.error(f"{a.out / made[0]}: the set exists already")
+        room = a.out
+    else:
+        room = extend_room(a.src, a.out, THIN_PROMPTS + HELD_OUT_PROMPTS)
     tools = a.tools or Path(a.src).resolve().parent / "tools"
     for name in sets:
         doc = json.loads(

@@ -98,3 +98,15 @@ def test_an_unknown_stress_set_is_refused_before_anything_is_made(tmp_path, caps
     assert e.value.code == 2
     assert "--res: unknown set 'bogus'" in capsys.readouterr().err
     assert not (tmp_path / "room").exists()
+
+
+def test_the_sets_join_a_room_thin_room_made_but_never_replace_one(tmp_path, capsys):
+    room = extend_room(DEV_ROOM, tmp_path / "room", ())
+    (room / "support").mkdir()
+    with pytest.raises(SystemExit) as e:
+        main([str(DEV_ROOM), str(room), "--res", "support"])
+    assert e.value.code == 2 and "the set exists already" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit) as e:
+        main([str(DEV_ROOM), str(tmp_path / "empty"), "--res", "support"])
+    assert e.value.code == 2 and "is not a room" in capsys.readouterr().err
