@@ -97,7 +97,8 @@ LOST_CLAIM = 0.5
 #: 0.19-0.31. The claim counts unless the typical view rejects the additions outright (under
 #: REJECTED_SHARE): a detector's box over the desk under "the cactus on the desk" on a third
 #: of the views carried 1.22 of the vote's claim at a typical view of 0.0005; the fusions by
-#: the claim that helped on the dev room had 0.10-0.97 (#38, docs/benchmarks.md).
+#: the claim that helped on the dev room had 0.10-0.97, p07's table 0.001-0.011 (#38,
+#: docs/benchmarks.md).
 TYPICAL_PARTLY_IN = 0.1
 #: The rounds stop once no view's relative confidence moves by more than this.
 CONFIDENCE_TOL = 1e-3
@@ -333,7 +334,7 @@ def typical_share(evidence: list[ViewEvidence], conf: np.ndarray, members: np.nd
     views, each weighted by how much of the members it sees times its confidence. A view whose
     mask is empty is left out: "nothing of the prompt here" puts the vote and the additions out
     alike, so it cannot say which of them the prompt is (the coffee cup under the room's
-    correlated masks: 40 empty masks on views that show a sliver of it, and the cup itself on
+    correlated masks: 33 empty masks on views that show a sliver of it, and the cup itself on
     the 8 that show it). 0 when no answering view sees them."""
     shares, weights = [], []
     for c, e in zip(conf, evidence, strict=True):
@@ -394,9 +395,9 @@ def guard(
     was right), while the typical view puts it out (0.0005). So no reason fuses against a
     typical view that rejects the additions outright (under REJECTED_SHARE). The typical view
     is taken over the views that answer: an empty mask puts the vote and the additions out
-    alike, and a cup its correlated masks answer "absent" on 40 views that show a sliver of it
-    (vote 10 Gaussians, field 635) is put in by the 8 views that show it (0.78). `evidence`
-    and `conf` are the views' evidence and confidences that S1 and S0 accumulate."""
+    alike, and a cup its correlated masks answer "absent" (empty) on 33 views that show a
+    sliver of it (vote 10 Gaussians, field 635) is put in by the views that show it (0.78).
+    `evidence` and `conf` are the views' evidence and confidences that S1 and S0 accumulate."""
     n_field = int(field_sel.sum())
     if n_field == 0 or sel.sum() >= COLLAPSE_RATIO * n_field:
         return sel, None
@@ -410,7 +411,7 @@ def guard(
     partly = claim >= PARTLY_IN * seen  # the masks put the additions partly in, pooled
     # (when neither, the masks claim little of what the field adds: it over-selects). Either
     # reason yields to a typical view that rejects the additions outright, as the guard
-    # rejects a Gaussian (#38: a support boxed on a third of the views, 0.0005-0.010; the
+    # rejects a Gaussian (#38: a support boxed on a third of the views, 0.0005-0.011; the
     # fusions by the claim that helped, 0.10-0.97); the pooled share, a weaker reason, also
     # needs the typical view to put them partly in
     by_claim = lost and typical >= REJECTED_SHARE
