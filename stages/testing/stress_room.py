@@ -51,6 +51,7 @@ from stages.testing.thin_room import (
     _tool_room,
     _write_mask,
     add_res,
+    chosen,
     extend_room,
 )
 
@@ -252,11 +253,7 @@ def main(argv: list[str] | None = None) -> None:
         "--mask-seed", type=int, default=0, help="seed of the RES masks (default 0, the room's)"
     )
     a = ap.parse_args(argv)
-    sets = [s for s in a.res.split(",") if s]
-    if not sets:
-        ap.error(f"--res: name at least one set of {', '.join(STRESS_SETS)}")
-    if unknown := [s for s in sets if s not in STRESS_SETS]:
-        ap.error(f"--res: unknown set {unknown[0]!r} (known: {', '.join(STRESS_SETS)})")
+    sets = chosen(ap, "--res", a.res, list(STRESS_SETS), at_least_one=True)
     if a.out.exists():
         if not (a.out / "prompts.json").is_file():
             ap.error(f"{a.out}: exists and is not a room (no prompts.json)")
