@@ -214,6 +214,18 @@ def add_res(room: Path, src: Path, name: str, tools: Path, seed: int = 0) -> Pat
     return out
 
 
+def chosen(
+    ap: argparse.ArgumentParser, option: str, text: str, known: list[str], at_least_one: bool
+) -> list[str]:
+    """The comma-separated names of `option`, each of `known` (argparse's exit 2 otherwise)."""
+    names = [s for s in text.split(",") if s]
+    if at_least_one and not names:
+        ap.error(f"{option}: name at least one set of {', '.join(known)}")
+    if unknown := [n for n in names if n not in known]:
+        ap.error(f"{option}: unknown set {unknown[0]!r} (known: {', '.join(known)})")
+    return names
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("src", type=Path, help="the dev room (read only)")
@@ -234,15 +246,8 @@ def main(argv: list[str] | None = None) -> None:
         help="seed of the RES masks (default 0, the room's own; another draws every mask anew)",
     )
     a = ap.parse_args(argv)
-    names = [s for s in a.prompts.split(",") if s]
-    if not names:
-        ap.error(f"--prompts: name at least one set of {', '.join(PROMPT_SETS)}")
-    if unknown := [n for n in names if n not in PROMPT_SETS]:
-        ap.error(f"--prompts: unknown set {unknown[0]!r} (known: {', '.join(PROMPT_SETS)})")
-    sets = [s for s in a.res.split(",") if s]
-    if unknown := [s for s in sets if s not in RES_SETS and s not in MADE_HERE]:
-        known = ", ".join([*RES_SETS, *MADE_HERE])
-        ap.error(f"--res: unknown set {unknown[0]!r} (known: {known})")
+    names = chosen(ap, "--prompts", a.prompts, list(PROMPT_SETS), at_least_one=True)
+    sets = chosen(ap, "--res", a.res, [*RES_SETS, *MADE_HERE], at_least_one=False)
     added = tuple(p for n in names for p in PROMPT_SETS[n])
     room = extend_room(a.src, a.out, added)
     tools = a.tools or Path(a.src).resolve().parent / "tools"

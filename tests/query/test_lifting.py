@@ -461,3 +461,46 @@ def test_vote_share_and_the_planes_probability_by_hand():
     np.testing.assert_allclose(vote_share(lf, p, None), [0.75, 0.0, 0.0, 0.0])
     z = np.array([0.0, np.log(3.0), -np.log(3.0), 800.0, -800.0])
     np.testing.assert_allclose(probability(z), [0.5, 0.75, 0.25, 1.0, 0.0], atol=1e-7)
+
+
+def test_guard_yields_to_a_typical_view_that_puts_the_additions_out():
+    """#38, "the cactus on the desk": a sound vote (the object, 1,000 Gaussians every view
+    puts in) under a field that also selects the support (5,000 more). A box detector takes
+    the support in whole on a third of the views; it is big, so its claim beats half the
+    vote's, but the typical view puts it out: not fused, and the record says why. The same
+    claim from a vote that collapsed (a cup the masks of the views that show it put in, and
+    empty masks on the many views that show a sliver of it) is fused: an empty mask puts the
+    vote and the additions out alike, so the typical view is taken over the views that
+    answer."""
+    from stages.query.lifting import accumulate, guard
+
+    n, views = 6000, 9
+    obj = np.arange(n) < 1000  # the rest (5,000) is the support
+    ids = np.arange(n)
+    ev = []
+    for v in range(views):
+        boxed = v % 3 == 0  # a third of the views box the support whole
+        s1 = np.where(obj, 9.0, 4.0 if boxed else 0.0)
+        ev.append(ViewEvidence(f"v{v}", ids, s1, np.where(obj, 10.0, 4.0) - s1, False))
+    conf = np.ones(views)
+    S1, S0 = accumulate(ev, conf, n)
+    sel, field_sel = obj.copy(), np.ones(n, bool)
+    kept, weighed = guard(sel, field_sel, S1, S0, LiftParams(), ev, conf)
+    assert weighed is not None and weighed["claim_vs_vote"] > 0.5  # the claim alone would fuse
+    assert weighed["typical_share"] == 0.0 and not weighed["fused"]
+    assert (kept == obj).all()
+    assert "typical view that answers puts the field's additions out" in weighed["why"]
+    # the collapsed vote: 3 views show the cup (in), 12 empty masks see a sliver of it
+    cup = np.arange(n) < 300
+    ev = [ViewEvidence(f"s{v}", ids[cup], np.full(300, 3.0), np.full(300, 1.0), False)
+          for v in range(3)]  # fmt: skip
+    ev += [ViewEvidence(f"e{v}", ids[cup], np.zeros(300), np.full(300, 2.0), True)
+           for v in range(12)]  # fmt: skip
+    conf = np.ones(len(ev))
+    S1, S0 = accumulate(ev, conf, n)
+    sel = np.zeros(n, bool)
+    sel[:5] = True  # the vote kept 5 of the cup's 300
+    fused, weighed = guard(sel, cup, S1, S0, LiftParams(), ev, conf)
+    assert weighed is not None and weighed["fused"] and (fused == cup).all()
+    assert weighed["typical_share"] == 0.75  # over the 3 views that answer
+    assert "carry much of the masks' claim" in weighed["why"]
