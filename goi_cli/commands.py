@@ -105,12 +105,15 @@ def fit_field_cmd(features: Path, codebook: Path, **kw) -> None:
     from stages.semantics.fit_field import fit_field
 
     p, run = build(FieldParams, kw), build(FieldRun, kw)
+    rank = 0
     if run.distributed:
-        torchrun_env()  # first: without torchrun there is nothing to check the rest for
+        # first: without torchrun there is nothing to check the rest for
+        rank, _, _ = torchrun_env()
     scene = load_scene_from(kw)
     fit = fit_field_distributed if run.distributed else fit_field
     out = fit(scene, features, codebook, p, run, TERMINAL)
-    click.echo(f"field: {out}")
+    if rank == 0:  # the leader writes the field and says so; the other ranks say nothing
+        click.echo(f"field: {out}")
 
 
 @click.command(
