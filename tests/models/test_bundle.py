@@ -155,6 +155,18 @@ def test_manifest_problems_are_named(tmp_path):
     _refused(root, "version 7.0")
 
 
+def test_a_directory_without_a_manifest_names_export_model(tmp_path):
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    (ckpt / "config.json").write_text("{}")
+    with pytest.raises(GoiError) as e:
+        load_bundle(ckpt)
+    assert str(e.value).startswith(f"--bundle: {ckpt} has no manifest.json: a Hugging Face ")
+    assert "`goi export-model CHECKPOINT... --out BUNDLE`" in str(e.value)
+    with pytest.raises(GoiError, match="not a model bundle; `goi export-model"):
+        load_bundle(tmp_path)
+
+
 def test_extract_with_a_bundle(tmp_path, capsys):
     root, *_ = make_bundle(tmp_path / "b")
     d = tmp_path / "scene"

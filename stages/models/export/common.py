@@ -33,7 +33,8 @@ def transformers() -> Any:
         tf.utils.logging.set_verbosity_error()
     except ImportError:
         raise GoiError(
-            "goi export-model needs the optional dependency transformers: pip install 'goi[export]'"
+            "goi export-model needs transformers, the optional extra goi[export]: "
+            "pip install 'goi[export]' (bash scripts/goi.sh export-model ... installs it)"
         ) from None
     return tf
 
