@@ -13,6 +13,7 @@ from goi_cli.options import (
     load_scene_from,
     path_option,
     scene_options,
+    stack,
 )
 from goi_cli.report import TERMINAL
 from stages.core.staging import staged_outputs
@@ -47,6 +48,15 @@ plane_or_lift_option = click.option(
 #: Where the prompt's embedding and RES masks come from: the fields of PromptSources.
 source_options = dataclass_options(PromptSources)
 lift_options = dataclass_options(LiftParams)
+#: render-mask / select: the scene and one prompt's answer, from a plane or lifted.
+answer_options = stack(
+    scene_options,
+    field_or_lift_option,
+    prompt_option,
+    plane_or_lift_option,
+    source_options,
+    lift_options,
+)
 
 
 def _lifted_answer(scene, field: Path | None, prompt: str, kw: dict, need_positive: bool = False):  # noqa: ANN001, ANN202, E501
@@ -176,12 +186,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
 
 
 @click.command("render-mask", short_help="Render the prompt's mask and an overlay at any camera.")
-@scene_options
-@field_or_lift_option
-@prompt_option
-@plane_or_lift_option
-@source_options
-@lift_options
+@answer_options
 @path_option(
     "--camera-file",
     "Render these cameras (cameras.json, transforms.json or COLMAP) instead of the scene's: "
@@ -233,12 +238,7 @@ def render_mask_cmd(
 
 
 @click.command("select", short_help="Select the prompt's 3D Gaussians of interest.")
-@scene_options
-@field_or_lift_option
-@prompt_option
-@plane_or_lift_option
-@source_options
-@lift_options
+@answer_options
 @click.option(
     "--mode",
     type=click.Choice(("hyperplane", "threshold")),
