@@ -19,6 +19,7 @@ import numpy as np
 
 from stages.core.errors import GoiError, warn
 from stages.core.files import read_json, regular_file
+from stages.models.onnx_io import Tokens
 
 TOLERANCE = 1e-4
 #: The absolute floor of the check (what goi's CLIP export always allowed).
@@ -338,10 +339,53 @@ def tokenizer_json(src: Path) -> str:
         ) from None
 
 
-def write_tokenizer(text: str, tmp: Path, name: str, max_length: int) -> dict:
-    """Write a tokenizer.json into the bundle; returns its manifest entry."""
+def write_tokenizer(
+    text: str, tmp: Path, name: str, max_length: int, src: Path
+) -> tuple[dict, Tokens]:
+    """Write a tokenizer.json into the bundle; returns its manifest entry and the tokenizer
+    (for the export's checks)."""
     (tmp / name).write_text(text)
-    return {"kind": "huggingface", "file": name, "max_length": int(max_length)}
+    spec = {"kind": "huggingface", "file": name, "max_length": int(max_length)}
+    return spec, Tokens(tmp / name, max_length, str(src))
+
+
+def image_spec(file: str, size: Sequence[int], stats: dict, **names: Any) -> dict:
+    """An image graph's manifest entry: its file, `names` (its inputs' and outputs' names),
+    the input size and the normalisation."""
+    return {"file": file, **names, "size": list(size), "mean": stats["mean"], "std": stats["std"]}
+
+
+#: A text graph's inputs: one prompt of any length.
+TEXT_AXES = {"input_ids": {1: "length"}, "attention_mask": {1: "length"}}
+
+
+def text_feeds(tokens: Tokens, texts: Sequence[str] = ("a red chair", "the lamp")) -> list[dict]:
+    """A text graph's check inputs: the texts tokenised (by default two of other lengths)."""
+    return [
+        dict(zip(("input_ids", "attention_mask"), tokens.encode(t), strict=True)) for t in texts
+    ]
+
+
+def export_checked(
+    module: Any,
+    feeds: Sequence[dict[str, np.ndarray]],
+    path: Path,
+    outputs: Sequence[str],
+    axes: dict,
+    opset: int,
+) -> tuple[list[list[np.ndarray]], dict]:
+    """`module` exported to `path` (its inputs named and ordered as the feeds' keys, its
+    `outputs`), then run in onnxruntime against torch on every feed; returns torch's outputs
+    per feed and the largest errors over the feeds."""
+    import torch
+
+    with torch.no_grad():
+        outs = [module(*map(torch.from_numpy, f.values())) for f in feeds]
+    wants = [[t.numpy() for t in (o if isinstance(o, tuple) else (o,))] for o in outs]
+    args = tuple(map(torch.from_numpy, feeds[0].values()))
+    onnx_export(module, args, path, (list(feeds[0]), list(outputs)), axes, opset)
+    found = [check(path, f, w) for f, w in zip(feeds, wants, strict=True)]
+    return wants, {k: max(f[k] for f in found) for k in found[0]}
 
 
 def onnx_export(model: Any, args: tuple, path: Path, names: tuple, axes: dict, opset: int) -> None:
