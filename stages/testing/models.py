@@ -218,6 +218,20 @@ def sam2(real: bool = False, image_size: int = 128, seed: int = 0) -> Any:
     return realistic_init(model, seed, skip=("positional_embedding",))
 
 
+def tiny_towers(
+    layers: int, image_size: int, patch: int = 16, vocab: int = 100, bos: int = 98, eos: int = 99
+) -> tuple[dict, dict]:
+    """A tiny CLIP's text and vision tower configs (32 wide, 4 heads, 16 tokens), as CLIP,
+    CLIPSeg and OWLv2 configs take them."""
+    width = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=layers)
+    text = dict(
+        vocab_size=vocab, **width, num_attention_heads=4, max_position_embeddings=16,
+        bos_token_id=bos, eos_token_id=eos, pad_token_id=0,
+    )  # fmt: skip
+    vision = dict(**width, num_attention_heads=4, image_size=image_size, patch_size=patch)
+    return text, vision
+
+
 def clipseg(real: bool = False, seed: int = 0) -> Any:
     """CLIPSegForImageSegmentation: tiny, or CIDAS/clipseg-rd64-refined's config (CLIP
     ViT-B/16 + CLIP's text tower, reduce_dim 64, the refined transposed convolution)."""
@@ -235,17 +249,10 @@ def clipseg(real: bool = False, seed: int = 0) -> Any:
             use_complex_transposed_convolution=True,
         )  # fmt: skip
     else:
+        text, vision = tiny_towers(layers=3, image_size=32)
         cfg = CLIPSegConfig(
-            text_config=dict(
-                vocab_size=100, hidden_size=32, intermediate_size=64, num_hidden_layers=3,
-                num_attention_heads=4, max_position_embeddings=16, bos_token_id=98,
-                eos_token_id=99, pad_token_id=0,
-            ),
-            vision_config=dict(
-                hidden_size=32, intermediate_size=64, num_hidden_layers=3, num_attention_heads=4,
-                image_size=32, patch_size=16,
-            ),
-            projection_dim=16, extract_layers=[0, 1, 2], reduce_dim=16,
+            text_config=text, vision_config=vision, projection_dim=16, extract_layers=[0, 1, 2],
+            reduce_dim=16,
             decoder_num_attention_heads=2, decoder_intermediate_size=32,
             use_complex_transposed_convolution=True,
         )  # fmt: skip
@@ -266,18 +273,8 @@ def owlv2(real: bool = False, seed: int = 0) -> Any:
             vision_config=dict(image_size=960, patch_size=16),
         )
     else:
-        cfg = Owlv2Config(
-            text_config=dict(
-                vocab_size=100, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
-                num_attention_heads=4, max_position_embeddings=16, bos_token_id=98,
-                eos_token_id=99, pad_token_id=0,
-            ),
-            vision_config=dict(
-                hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4,
-                image_size=64, patch_size=16,
-            ),
-            projection_dim=32,
-        )  # fmt: skip
+        text, vision = tiny_towers(layers=2, image_size=64)
+        cfg = Owlv2Config(text_config=text, vision_config=vision, projection_dim=32)
     torch.manual_seed(seed)
     model = Owlv2ForObjectDetection._from_config(cfg, attn_implementation="eager").eval()
     return realistic_init(model, seed)

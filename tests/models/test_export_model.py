@@ -9,6 +9,7 @@ import torch
 
 from goi_cli.main import main
 from stages.models.bundle import _prepare, load_bundle
+from stages.testing.models import tiny_towers
 from tests.helpers import DEV_ROOM
 
 transformers = pytest.importorskip("transformers")
@@ -21,28 +22,8 @@ def make_clip(root):
     from tokenizers import Tokenizer, models, pre_tokenizers, processors
 
     torch.manual_seed(0)
-    cfg = transformers.CLIPConfig(
-        text_config=dict(
-            vocab_size=len(VOCAB),
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
-            max_position_embeddings=16,
-            bos_token_id=8,
-            eos_token_id=9,
-            pad_token_id=0,
-        ),
-        vision_config=dict(
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
-            image_size=32,
-            patch_size=8,
-        ),
-        projection_dim=16,
-    )
+    text, vision = tiny_towers(2, 32, patch=8, vocab=len(VOCAB), bos=8, eos=9)
+    cfg = transformers.CLIPConfig(text_config=text, vision_config=vision, projection_dim=16)
     model = transformers.CLIPModel(cfg).eval()
     model.save_pretrained(str(root))
     tok = Tokenizer(models.WordLevel({w: i for i, w in enumerate(VOCAB)}, unk_token="<unk>"))

@@ -13,12 +13,10 @@ from typing import Any
 
 from stages.core.errors import GoiError
 from stages.models.export.common import (
-    TEXT_AXES,
     check,
-    export_checked,
+    export_text_graph,
     image_stats,
     onnx_export,
-    text_feeds,
     write_tokenizer,
 )
 from stages.models.onnx_io import Tokens
@@ -102,9 +100,9 @@ def text_spec(tokenizer: dict) -> dict:
 
 def export_text(module: Any, tmp: Path, tokens: Tokens, opset: int) -> dict:
     """text_encoder.onnx from a torch module (input_ids, attention_mask) -> [1, D]."""
-    feeds = text_feeds(tokens, ["a small red chair by the sofa"])
     path = tmp / "text_encoder.onnx"
-    return export_checked(module, feeds, path, ["text_embeds"], TEXT_AXES, opset)[1]
+    texts = ["a small red chair by the sofa"]
+    return export_text_graph(module, tokens, path, "text_embeds", opset, texts)[1]
 
 
 def export_clip(

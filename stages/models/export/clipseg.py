@@ -13,9 +13,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from stages.models import res_processing as rp
 from stages.models.export.common import TEXT_AXES, export_checked, image_stats, write_tokenizer
 from stages.models.export.grounding_dino import check_image
+from stages.models.onnx_io import Tokens
 
 #: CLIPSeg's processor size when preprocessor_config.json does not say.
 DEFAULT_SIZE = 352
@@ -52,12 +55,7 @@ def export_clipseg(
     model: Any, src: Path, tmp: Path, tokenizer: str, threshold: float, opset: int
 ) -> dict:
     """res.onnx and its tokenizer; returns the manifest's `res` entry and the check."""
-    max_length = int(model.config.text_config.max_position_embeddings)
-    tok, tokens = write_tokenizer(tokenizer, tmp, "res_tokenizer.json", max_length, src)
-    # CIDAS's checkpoints list ImageNet's statistics in their preprocessor_config.json
-    stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
-    size = processor_size(stats["config"])
-    pixels = rp.square_inputs(check_image(size * 3 // 4, size), (size, size), *mean_std(stats))
+    tok, tokens, stats, size, pixels = export_inputs(model, src, tmp, tokenizer, "res")
     ids, att = tokens.encode("a red chair")
     feed = {"pixel_values": pixels, "input_ids": ids, "attention_mask": att}
     _, found = export_checked(
@@ -80,5 +78,18 @@ def export_clipseg(
     return {"res": spec, "export_checks": {"res.onnx": found}}
 
 
-def mean_std(stats: dict) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    return tuple(stats["mean"]), tuple(stats["std"])
+def export_inputs(
+    model: Any, src: Path, tmp: Path, tokenizer: str, prefix: str
+) -> tuple[dict, Tokens, dict, int, np.ndarray]:
+    """What a CLIPSeg export (whole or split) starts from: the tokenizer written as
+    <prefix>_tokenizer.json (its manifest entry, and loaded), the image statistics, the input
+    size S and the check's pixels [1, 3, S, S]."""
+    max_length = int(model.config.text_config.max_position_embeddings)
+    name = f"{prefix}_tokenizer.json"
+    tok, tokens = write_tokenizer(tokenizer, tmp, name, max_length, src)
+    # CIDAS's checkpoints list ImageNet's statistics in their preprocessor_config.json
+    stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
+    size = processor_size(stats["config"])
+    mean, std = tuple(stats["mean"]), tuple(stats["std"])
+    pixels = rp.square_inputs(check_image(size * 3 // 4, size), (size, size), mean, std)
+    return tok, tokens, stats, size, pixels

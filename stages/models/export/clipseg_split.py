@@ -15,17 +15,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from stages.models import res_processing as rp
-from stages.models.export.clipseg import mean_std, processor_size
+from stages.models.export.clipseg import export_inputs
 from stages.models.export.common import (
-    TEXT_AXES,
     export_checked,
+    export_text_graph,
     image_spec,
-    image_stats,
-    text_feeds,
-    write_tokenizer,
 )
-from stages.models.export.grounding_dino import check_image
 
 
 def modules(model: Any) -> tuple[Any, Any, Any]:
@@ -76,19 +71,15 @@ def export_clipseg_split(
     model: Any, src: Path, tmp: Path, tokenizer: str, threshold: float, opset: int
 ) -> dict:
     """The three graphs and the tokenizer; returns the manifest's `clipseg` entry and checks."""
-    max_length = int(model.config.text_config.max_position_embeddings)
-    tok, tokens = write_tokenizer(tokenizer, tmp, "clipseg_tokenizer.json", max_length, src)
-    stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
-    size = processor_size(stats["config"])
-    pixels = rp.square_inputs(check_image(size * 3 // 4, size), (size, size), *mean_std(stats))
+    tok, tokens, stats, size, pixels = export_inputs(model, src, tmp, tokenizer, "clipseg")
     image, text, decoder = modules(model)
     paths = {k: tmp / f"clipseg_{k}.onnx" for k in ("image", "text", "decoder")}
     checks = {}
     ((acts,),), checks["clipseg_image.onnx"] = export_checked(
         image, [{"pixel_values": pixels}], paths["image"], ["activations"], {}, opset
     )
-    conds, checks["clipseg_text.onnx"] = export_checked(
-        text, text_feeds(tokens), paths["text"], ["conditional"], TEXT_AXES, opset
+    conds, checks["clipseg_text.onnx"] = export_text_graph(
+        text, tokens, paths["text"], "conditional", opset
     )
     feeds = [{"activations": acts, "conditional": c} for (c,) in conds]
     _, checks["clipseg_decoder.onnx"] = export_checked(

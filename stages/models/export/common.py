@@ -359,13 +359,6 @@ def image_spec(file: str, size: Sequence[int], stats: dict, **names: Any) -> dic
 TEXT_AXES = {"input_ids": {1: "length"}, "attention_mask": {1: "length"}}
 
 
-def text_feeds(tokens: Tokens, texts: Sequence[str] = ("a red chair", "the lamp")) -> list[dict]:
-    """A text graph's check inputs: the texts tokenised (by default two of other lengths)."""
-    return [
-        dict(zip(("input_ids", "attention_mask"), tokens.encode(t), strict=True)) for t in texts
-    ]
-
-
 def export_checked(
     module: Any,
     feeds: Sequence[dict[str, np.ndarray]],
@@ -405,6 +398,22 @@ def onnx_export(model: Any, args: tuple, path: Path, names: tuple, axes: dict, o
             opset_version=opset,
             dynamo=False,
         )
+
+
+def export_text_graph(
+    module: Any,
+    tokens: Tokens,
+    path: Path,
+    output: str,
+    opset: int,
+    texts: Sequence[str] = ("a red chair", "the lamp"),
+) -> tuple[list[list[np.ndarray]], dict]:
+    """A text graph (input_ids, attention_mask [1, L], L any length -> `output`), exported and
+    checked on the `texts` (by default two of other lengths), as export_checked."""
+    feeds = [
+        dict(zip(("input_ids", "attention_mask"), tokens.encode(t), strict=True)) for t in texts
+    ]
+    return export_checked(module, feeds, path, [output], TEXT_AXES, opset)
 
 
 def run_onnx(path: Path, feed: dict[str, np.ndarray]) -> list[np.ndarray]:

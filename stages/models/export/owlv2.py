@@ -21,11 +21,10 @@ from typing import Any
 
 from stages.models import res_processing as rp
 from stages.models.export.common import (
-    TEXT_AXES,
     export_checked,
+    export_text_graph,
     image_spec,
     image_stats,
-    text_feeds,
     write_tokenizer,
 )
 from stages.models.export.grounding_dino import check_image
@@ -87,8 +86,8 @@ def export_owlv2(model: Any, src: Path, tmp: Path, tokenizer: str, opset: int) -
     (want,), checks["owl_image.onnx"] = export_checked(
         image, [{"pixel_values": pixels}], tmp / "owl_image.onnx", IMAGE_OUTPUTS, {}, opset
     )
-    _, checks["owl_text.onnx"] = export_checked(
-        text, text_feeds(tokens), tmp / "owl_text.onnx", ["query_embeds"], TEXT_AXES, opset
+    _, checks["owl_text.onnx"] = export_text_graph(
+        text, tokens, tmp / "owl_text.onnx", "query_embeds", opset
     )
     spec = {
         "image": image_spec("owl_image.onnx", [size, size], stats),
