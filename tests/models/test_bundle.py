@@ -15,6 +15,8 @@ from tests.helpers import front_camera, random_vertex, write_ply
 
 DIM = 12
 VOCAB = ["[UNK]", "red", "chair", "the", "green", "sofa"]
+#: The test bundles' image normalisation.
+NORMALISED = {"mean": [0.5, 0.5, 0.5], "std": [0.25, 0.25, 0.25], "channel_order": "RGB"}
 
 
 class Dense(torch.nn.Module):
@@ -86,9 +88,7 @@ def make_bundle(root, image_output="features"):
             "file": "image_encoder.onnx",
             "input": "image",
             "output": "features",
-            "mean": [0.5, 0.5, 0.5],
-            "std": [0.25, 0.25, 0.25],
-            "channel_order": "RGB",
+            **NORMALISED,
         },
         "text_encoder": {
             "file": "text_encoder.onnx",
@@ -222,9 +222,7 @@ def test_res_model_gives_the_thresholded_mask(tmp_path):
         "image_input": "image",
         "input_ids": "input_ids",
         "output": "scores",
-        "mean": [0.5, 0.5, 0.5],
-        "std": [0.25, 0.25, 0.25],
-        "channel_order": "RGB",
+        **NORMALISED,
         "threshold": 0.0,
     }
     (root / "manifest.json").write_text(json.dumps(manifest))
