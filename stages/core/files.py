@@ -368,6 +368,13 @@ def create_partial(path: Path, option: str) -> None:
     os.close(fd)
 
 
+def finish_partial(path: Path, dest: Path) -> None:
+    """A finished partial file made durable (fsync) and renamed to its destination."""
+    with open(path, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(path, dest)
+
+
 @contextlib.contextmanager
 def output_lock(path: str | os.PathLike[str], option: str) -> Iterator[None]:
     """Hold `<path>.lock` while a command writes `path` (and its partial file): a second run
