@@ -16,8 +16,10 @@ class Client:
         import viser
         from viser import _messages
         from websockets.sync.client import connect
+        from websockets.typing import Subprotocol
 
-        self.ws = connect(url, subprotocols=[f"viser-v{viser.__version__}"], max_size=None)
+        protocol = Subprotocol(f"viser-v{viser.__version__}")
+        self.ws = connect(url, subprotocols=[protocol], max_size=None)
         self.t_open = time.perf_counter()
         self.received: list[tuple[float, int]] = []
         self._stop = threading.Event()
