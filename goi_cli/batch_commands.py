@@ -13,7 +13,9 @@ from stages.core.errors import GoiError
 
 
 @click.command(
-    "batch", context_settings={"ignore_unknown_options": False, "allow_interspersed_args": True}
+    "batch",
+    context_settings={"ignore_unknown_options": False, "allow_interspersed_args": True},
+    short_help="Run many scenes and prompts as one Snakemake workflow.",
 )
 @click.argument("config", type=click.Path(path_type=Path))
 @click.argument("snakemake_args", nargs=-1, type=click.UNPROCESSED)

@@ -3,11 +3,21 @@ Each one parses its options, calls one stage function and reports."""
 
 from __future__ import annotations
 
+import copy
+import inspect
 from pathlib import Path
 
 import click
 
-from goi_cli.options import EXISTING, build, dataclass_options, load_scene_from, scene_options
+from goi_cli.options import (
+    EXISTING,
+    build,
+    dataclass_options,
+    features_option,
+    load_scene_from,
+    path_option,
+    scene_options,
+)
 from goi_cli.report import TERMINAL
 from stages.core.errors import GoiError
 from stages.models.export import ModelExportParams, ModelExportRun
@@ -18,20 +28,18 @@ from stages.semantics.field_model import FieldParams
 from stages.semantics.fit_field import FieldRun
 
 
-@click.command("extract")
+@click.command("extract", short_help="Write the features artifact of the scene's training views.")
 @scene_options
-@click.option(
+@path_option(
     "--bundle",
-    type=click.Path(path_type=Path),
-    help="Model bundle directory (manifest.json + ONNX image encoder, see docs/models.md): "
+    "Model bundle directory (manifest.json + ONNX image encoder, see docs/models.md): "
     "encode the training images with it.",
 )
-@click.option(
+@path_option(
     "--from",
-    "source",
-    type=click.Path(path_type=Path),
-    help="Directory of precomputed per-image features: <view>.npy [D, h, w] or the "
+    "Directory of precomputed per-image features: <view>.npy [D, h, w] or the "
     "authors' APE <view>.pt (float16 [D, H, W]).",
+    "source",
 )
 @dataclass_options(ExtractRun)
 @dataclass_options(ExtractParams)
@@ -56,8 +64,11 @@ def extract_cmd(source: Path | None, bundle: Path | None, **kw) -> None:
     click.echo(f"features: {out}")
 
 
-@click.command("init-codebook")
-@click.option("--features", type=EXISTING, required=True, help="Features artifact (goi extract).")
+@click.command(
+    "init-codebook",
+    short_help="Initialise the codebook (TFCC) by spherical k-means.",
+)
+@features_option
 @dataclass_options(CodebookRun)
 @dataclass_options(CodebookParams)
 def init_codebook_cmd(features: Path, **kw) -> None:
@@ -68,9 +79,12 @@ def init_codebook_cmd(features: Path, **kw) -> None:
     click.echo(f"codebook: {out}")
 
 
-@click.command("fit-field")
+@click.command(
+    "fit-field",
+    short_help="Fit the semantic field (a feature per Gaussian).",
+)
 @scene_options
-@click.option("--features", type=EXISTING, required=True, help="Features artifact (goi extract).")
+@features_option
 @click.option(
     "--codebook", type=EXISTING, required=True, help="Codebook artifact (goi init-codebook)."
 )
@@ -91,15 +105,21 @@ def fit_field_cmd(features: Path, codebook: Path, **kw) -> None:
     from stages.semantics.fit_field import fit_field
 
     p, run = build(FieldParams, kw), build(FieldRun, kw)
+    rank = 0
     if run.distributed:
-        torchrun_env()  # first: without torchrun there is nothing to check the rest for
+        # first: without torchrun there is nothing to check the rest for
+        rank, _, _ = torchrun_env()
     scene = load_scene_from(kw)
     fit = fit_field_distributed if run.distributed else fit_field
     out = fit(scene, features, codebook, p, run, TERMINAL)
-    click.echo(f"field: {out}")
+    if rank == 0:  # the leader writes the field and says so; the other ranks say nothing
+        click.echo(f"field: {out}")
 
 
-@click.command("export-model")
+@click.command(
+    "export-model",
+    short_help="Make a model bundle from Hugging Face checkpoints.",
+)
 @click.argument("sources", nargs=-1, required=True, type=click.Path(path_type=Path))
 @dataclass_options(ModelExportRun)
 @dataclass_options(ModelExportParams)
@@ -122,7 +142,7 @@ def export_model_cmd(sources: tuple[Path, ...], **kw) -> None:
     click.echo(f"bundle: {out}")
 
 
-@click.command("inspect")
+@click.command("inspect", short_help="Show what a PLY or HDF5 artifact holds and validate it.")
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
 def inspect_cmd(files: tuple[str, ...]) -> None:
     """Show what a PLY or HDF5 artifact holds and validate it against its schema.
@@ -144,7 +164,7 @@ def inspect_cmd(files: tuple[str, ...]) -> None:
         raise GoiError(f"{', '.join(bad)}: see the problems above")
 
 
-@click.command("index-res")
+@click.command("index-res", short_help="Index a scene's training photos for a bundle's RES.")
 @scene_options
 @dataclass_options(ResIndexRun)
 def index_res_cmd(**kw) -> None:
@@ -162,9 +182,19 @@ def index_res_cmd(**kw) -> None:
     click.echo(f"RES index: {out}")
 
 
+def alias(cmd: click.Command, name: str) -> click.Command:
+    """`cmd` under another name, whose help says so."""
+    other = copy.copy(cmd)
+    other.name = name
+    other.short_help = f"An alias of {cmd.name}."
+    help_ = inspect.cleandoc(cmd.help or "")
+    other.help = f"The same command as `goi {cmd.name}` (an alias).\n\n{help_}"
+    return other
+
+
 def register(group: click.Group) -> None:
     group.add_command(extract_cmd)
-    group.add_command(extract_cmd, "extract-features")
+    group.add_command(alias(extract_cmd, "extract-features"))
     group.add_command(init_codebook_cmd)
     group.add_command(fit_field_cmd)
     group.add_command(export_model_cmd)

@@ -6,27 +6,22 @@ from pathlib import Path
 
 import click
 
-from goi_cli.options import build, dataclass_options
+from goi_cli.options import build, dataclass_options, path_option
 from goi_cli.report import TERMINAL
 from stages.evaluation.benchmarks.run import BENCHMARKS
 from stages.evaluation.demo import DemoParams, DemoRun
 from stages.evaluation.pipeline import EvalParams, EvalRun
 
 
-@click.command("eval")
+@click.command("eval", short_help="Run the whole pipeline on a room and score its test views.")
 @click.argument("room", type=click.Path(path_type=Path))
-@click.option(
+@path_option(
     "--features",
-    type=click.Path(path_type=Path),
-    default=None,
-    help="Directory of per-view feature files for the training views (<view>.npy or .pt); "
+    "Directory of per-view feature files for the training views (<view>.npy or .pt); "
     "needed by every variant but lifted_fieldless.",
 )
-@click.option(
-    "--res-masks",
-    type=click.Path(path_type=Path),
-    default=None,
-    help="RES masks: DIR/<prompt id>/<view>.png on training views (or --bundle DIR).",
+@path_option(
+    "--res-masks", "RES masks: DIR/<prompt id>/<view>.png on training views (or --bundle DIR)."
 )
 @click.option(
     "--benchmark",
@@ -133,7 +128,7 @@ def _cell(x: float | None) -> str:
     return "-" if x is None else f"{x:.4f}"
 
 
-@click.command("demo")
+@click.command("demo", short_help="Run the whole pipeline on the scene goi ships with.")
 @dataclass_options(DemoRun)
 @dataclass_options(DemoParams)
 def demo_cmd(**kw) -> None:

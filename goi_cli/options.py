@@ -134,29 +134,24 @@ def stack(*opts: Callable) -> Callable:
     return deco
 
 
+def path_option(flag: str, help: str, *names: str, **kw: Any) -> Callable:
+    """An option naming a file or directory, checked by the stage (whose errors name it)."""
+    return click.option(flag, *names, type=click.Path(path_type=Path), help=help, **kw)
+
+
 #: --scene DIR, or explicit --ply/--cameras/--images (they override the directory's).
 scene_options = stack(
-    click.option(
+    path_option(
         "--scene",
-        type=click.Path(path_type=Path),
-        help="Scene directory: point_cloud.ply, cameras (cameras.json, "
-        "transforms*.json or sparse/), images/, split.json.",
+        "Scene directory: point_cloud.ply, cameras (cameras.json, transforms*.json or sparse/), "
+        "images/, split.json.",
     ),
-    click.option(
-        "--ply",
-        type=click.Path(path_type=Path),
-        help="The 3DGS PLY (INRIA layout), instead of the scene's.",
-    ),
-    click.option(
-        "--cameras",
-        type=click.Path(path_type=Path),
-        help="cameras.json, transforms*.json or a COLMAP model directory.",
-    ),
-    click.option(
-        "--images",
-        type=click.Path(path_type=Path),
-        help="Directory of the training images.",
-    ),
+    path_option("--ply", "The 3DGS PLY (INRIA layout), instead of the scene's."),
+    path_option("--cameras", "cameras.json, transforms*.json or a COLMAP model directory."),
+    path_option("--images", "Directory of the training images."),
+)
+features_option = click.option(
+    "--features", type=EXISTING, required=True, help="Features artifact (goi extract)."
 )
 
 

@@ -11,7 +11,9 @@ from goi_cli.options import (
     build,
     dataclass_options,
     load_scene_from,
+    path_option,
     scene_options,
+    stack,
 )
 from goi_cli.report import TERMINAL
 from stages.core.staging import staged_outputs
@@ -46,6 +48,15 @@ plane_or_lift_option = click.option(
 #: Where the prompt's embedding and RES masks come from: the fields of PromptSources.
 source_options = dataclass_options(PromptSources)
 lift_options = dataclass_options(LiftParams)
+#: render-mask / select: the scene and one prompt's answer, from a plane or lifted.
+answer_options = stack(
+    scene_options,
+    field_or_lift_option,
+    prompt_option,
+    plane_or_lift_option,
+    source_options,
+    lift_options,
+)
 
 
 def _lifted_answer(scene, field: Path | None, prompt: str, kw: dict, need_positive: bool = False):  # noqa: ANN001, ANN202, E501
@@ -109,7 +120,7 @@ def _need_plane(hyperplanes: Path | None) -> Path:
     return hyperplanes
 
 
-@click.command("fit-hyperplane")
+@click.command("fit-hyperplane", short_help="Fit the prompt's hyperplane (OSH) against RES masks.")
 @scene_options
 @field_option
 @prompt_option
@@ -174,17 +185,11 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
         click.echo(f"RES masks it was fitted on: {res_masks_dir(run.out, prompt)}")
 
 
-@click.command("render-mask")
-@scene_options
-@field_or_lift_option
-@prompt_option
-@plane_or_lift_option
-@source_options
-@lift_options
-@click.option(
+@click.command("render-mask", short_help="Render the prompt's mask and an overlay at any camera.")
+@answer_options
+@path_option(
     "--camera-file",
-    type=click.Path(path_type=Path),
-    help="Render these cameras (cameras.json, transforms.json or COLMAP) instead of the scene's: "
+    "Render these cameras (cameras.json, transforms.json or COLMAP) instead of the scene's: "
     "any novel view.",
 )
 @dataclass_options(MaskRun)
@@ -232,13 +237,8 @@ def render_mask_cmd(
     click.echo(f"masks ({len(written)} views, {p.mode} mode): {run.out}")
 
 
-@click.command("select")
-@scene_options
-@field_or_lift_option
-@prompt_option
-@plane_or_lift_option
-@source_options
-@lift_options
+@click.command("select", short_help="Select the prompt's 3D Gaussians of interest.")
+@answer_options
 @click.option(
     "--mode",
     type=click.Choice(("hyperplane", "threshold")),
@@ -246,7 +246,7 @@ def render_mask_cmd(
     show_default=True,
     help="hyperplane (the fitted OSH) or threshold (the fixed cosine threshold).",
 )
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Selection artifact.")
+@path_option("--out", "Selection artifact.", required=True)
 @click.option("--force", is_flag=True, help="Overwrite an existing output.")
 def select_cmd(
     field: Path | None,
@@ -294,7 +294,7 @@ def select_cmd(
     click.echo(f"selection ({int(sel.sum())} of {sel.size} Gaussians): {out}")
 
 
-@click.command("export-ply")
+@click.command("export-ply", short_help="Write the selection, or the scene without it, as a PLY.")
 @scene_options
 @click.option("--selection", type=EXISTING, required=True, help="Selection artifact (goi select).")
 @click.option("--field", type=EXISTING, help="Field artifact, for --semantics.")
@@ -318,7 +318,7 @@ def export_ply_cmd(selection: Path, field: Path | None, **kw) -> None:
     click.echo(f"ply ({n} Gaussians): {out}")
 
 
-@click.command("query")
+@click.command("query", short_help="Answer a prompt: hyperplane, masks, selection and PLY.")
 @scene_options
 @field_or_lift_option
 @prompt_option

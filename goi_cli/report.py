@@ -1,44 +1,43 @@
-"""The terminal side of `stages.core.report.Report`: news on stderr, progress bars on a terminal.
+"""The CLI's `stages.core.report.Lines`: news on stderr, a progress bar on a terminal.
 
-Bars are drawn only when stderr is a terminal, so that logs and pipelines see only results,
-news lines and errors.
+Bars are drawn only when stderr is a terminal; elsewhere (a log, a pipeline, a CI job) a long
+loop says how far it has got in a line every few percent, on stderr too, so that stdout holds
+only results.
 """
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Iterable, Iterator
-from typing import TypeVar
+from collections.abc import Callable, Iterable
+from contextlib import AbstractContextManager
+from typing import Any
 
 import click
 
-T = TypeVar("T")
+from stages.core.report import Lines
 
 
-class TerminalReport:
-    def log(self, message: str) -> None:
-        click.echo(f"goi: {message}", err=True)
-
-    def progress(
-        self,
-        items: Iterable[T],
-        label: str,
-        length: int | None = None,
-        show: Callable[[T | None], str | None] | None = None,
-    ) -> Iterator[T]:
-        if not sys.stderr.isatty():
-            yield from items
-            return
-        with click.progressbar(
-            items,
-            length=length,
-            label=label,
-            file=sys.stderr,
-            item_show_func=show,
-            show_pos=True,
-            width=30,
-        ) as bar:
-            yield from bar
+def _news(message: str) -> None:
+    click.echo(f"goi: {message}", err=True)
 
 
-TERMINAL = TerminalReport()
+def _bar(
+    items: Iterable[Any],
+    label: str,
+    length: int | None,
+    show: Callable[[Any], str | None] | None,
+) -> AbstractContextManager[Iterable[Any]] | None:
+    if not sys.stderr.isatty():
+        return None
+    return click.progressbar(
+        items,
+        length=length,
+        label=label,
+        file=sys.stderr,
+        item_show_func=show,
+        show_pos=True,
+        width=30,
+    )
+
+
+TERMINAL = Lines(write=_news, bar=_bar)

@@ -24,7 +24,7 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-@click.command("view")
+@click.command("view", short_help="Ask prompts and see the answers in 3D, in the browser.")
 @scene_options
 @click.option(
     "--field",

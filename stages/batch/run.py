@@ -31,7 +31,7 @@ from typing import Annotated
 from stages.batch.config import Batch, Prompt, SceneJob
 from stages.core.artifacts import write_json
 from stages.core.errors import GoiError
-from stages.core.files import check_output_name, make_dir, output_lock
+from stages.core.files import check_out_dir, make_dir, output_lock
 from stages.core.params import Range
 from stages.core.report import SILENT, Report
 
@@ -188,20 +188,14 @@ def check_out(out: Path, force: bool) -> None:
     """OUT is goi batch's: new, empty, or made by goi batch (its state directory); else
     refused without --force, before anything is written: Snakemake deletes an output it is
     about to make again, whoever made it."""
-    check_output_name(out, "--out")
-    if out.exists() and not out.is_dir():
-        raise GoiError(f"--out: {out} is a file; goi batch writes a directory")
-    state = out / STATE
-    if state.is_symlink() or (state.exists() and not state.is_dir()):
-        raise GoiError(f"--out: {state} is not goi batch's state directory (a link, a file?)")
-    if force or not out.is_dir() or state.is_dir():
-        return
-    theirs = sorted(p.name for p in out.iterdir())
-    if theirs:
-        raise GoiError(
-            f"--out: {out} holds files goi batch did not make (e.g. {theirs[0][:60]}); "
-            "Snakemake would replace those it writes: choose a new directory, or pass --force"
-        )
+
+    def ours() -> bool:
+        state = out / STATE
+        if state.is_symlink() or (state.exists() and not state.is_dir()):
+            raise GoiError(f"--out: {state} is not goi batch's state directory (a link, a file?)")
+        return state.is_dir()
+
+    check_out_dir(out, force, "goi batch", ours, "Snakemake would replace those it writes")
 
 
 def run_batch(

@@ -19,7 +19,7 @@ import contextlib
 import json
 import os
 import stat
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
@@ -134,6 +134,24 @@ def check_output_name(path: Path, option: str | None = None) -> None:
                 f"{path}: the file name is longer than the file system allows "
                 f"({_name_max(parent)} bytes)",
             )
+        )
+
+
+def check_out_dir(out: Path, force: bool, who: str, ours: Callable[[], bool], risk: str) -> None:
+    """--out is a directory that `who` writes: new, empty, or its own (`ours()`, asked once it
+    is known to be a directory or absent); a directory of other files is refused without
+    --force, before anything is written. `risk`: what would befall those files."""
+    check_output_name(out, "--out")
+    if out.exists() and not out.is_dir():
+        raise GoiError(f"--out: {out} is a file; {who} writes a directory")
+    mine = ours()
+    if force or not out.is_dir() or mine:
+        return
+    theirs = sorted(p.name for p in out.iterdir())
+    if theirs:
+        raise GoiError(
+            f"--out: {out} holds files {who} did not make (e.g. {theirs[0][:60]}); {risk}: "
+            "choose a new directory, or pass --force"
         )
 
 
@@ -348,6 +366,13 @@ def create_partial(path: Path, option: str) -> None:
     except OSError as e:
         raise GoiError(f"{option}: cannot create {path} ({e.strerror or e})") from None
     os.close(fd)
+
+
+def finish_partial(path: Path, dest: Path) -> None:
+    """A finished partial file made durable (fsync) and renamed to its destination."""
+    with open(path, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(path, dest)
 
 
 @contextlib.contextmanager

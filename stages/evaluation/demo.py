@@ -16,7 +16,7 @@ from typing import Annotated
 import numpy as np
 
 from stages.core.errors import GoiError
-from stages.core.files import check_output_name, make_dir
+from stages.core.files import check_out_dir, make_dir
 from stages.core.params import AT_LEAST_1, check_params
 from stages.core.report import SILENT, Report
 from stages.evaluation.metrics import image_scores, mean_scores
@@ -71,17 +71,8 @@ DEMO_MARKER = "goi-demo.txt"
 def _check_out(out: Path, force: bool) -> None:
     """--out is the demo's: new, empty, or an earlier demo's (marked); a directory of the
     user's files is refused without --force, before anything is written."""
-    check_output_name(out, "--out")
-    if out.exists() and not out.is_dir():
-        raise GoiError(f"--out: {out} is a file; the demo writes a directory")
-    if force or not out.is_dir() or (out / DEMO_MARKER).is_file():
-        return
-    theirs = sorted(p.name for p in out.iterdir())
-    if theirs:
-        raise GoiError(
-            f"--out: {out} holds files the demo did not make (e.g. {theirs[0][:60]}); the demo "
-            "would replace them: choose a new directory, or pass --force"
-        )
+    ours = (out / DEMO_MARKER).is_file
+    check_out_dir(out, force, "the demo", ours, "the demo would replace them")
 
 
 @dataclass

@@ -44,6 +44,7 @@ from stages.evaluation.variants import (
     Answerers,
     DirectModel,
     Prediction,
+    Question,
     TfccModel,
     VisibilityCache,
     render_direct,
@@ -711,11 +712,10 @@ def run_eval(
         source = sources[prompt.id]
         views = [v for v in prompt.test_views if v in test]
         gts = {v: room.ground_truth(prompt, v) for v in views}
+        question = Question(prompt.text, text, source, views, train, hp, lp, planes, p.seed)
         for variant in variants:
             t0 = time.perf_counter()
-            pred = models.predict(
-                variant, prompt.text, text, source, train, hp, lp, planes, views, p.seed
-            )
+            pred = models.predict(variant, question)
             entry = {
                 "text": prompt.text,
                 "kind": prompt.kind,

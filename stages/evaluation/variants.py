@@ -131,29 +131,42 @@ class RoomModel:
         return np.zeros((cam.height, cam.width), bool)
 
 
+@dataclass
+class Question:
+    """One prompt as each variant is asked it: the prompt, its embedding, where its RES masks
+    come from and the test views to answer on; with the run's training views and settings."""
+
+    prompt: str
+    text: np.ndarray  # [D] the prompt's embedding
+    source: ResSource
+    views: list[str]  # the test views to answer on
+    train: list[Camera]
+    hp: HyperplaneParams
+    lp: LiftParams
+    planes: HyperplaneRun
+    seed: int
+
+
 def predict_lifted(
     renderer: SemanticRenderer | Rasterizer,
     visibility: Callable[[Camera], np.ndarray],
     test_cams: dict[str, Camera],
-    prompt: str,
-    text: np.ndarray | None,
-    source: ResSource,
-    train: list[Camera],
-    hp: HyperplaneParams,
-    lp: LiftParams,
-    views: list[str],
+    q: Question,
+    with_field: bool,
     entry: np.ndarray | None = None,
 ) -> Prediction:
-    """The lifted answer (with the field, or field-free from a bare Rasterizer and text None)
-    and its masks on the test views; `entry` [G]: the field's decoded entries, when known."""
+    """The lifted answer (with the field, or field-free from a bare Rasterizer) and its masks
+    on the test views; `entry` [G]: the field's decoded entries, when known."""
+    source, lp = q.source, q.lp
     # mask files stand in for a model that answers on the views goi picks; a bundle's RES
     # model answers on them itself
     src: MaskSource = source
     if lp.res_views is not None and isinstance(source, ResFiles):
         src = RoomModel(source)
-    ans = lift_prompt(renderer, train, src, prompt, text, hp, lp, visibility)
+    text = q.text if with_field else None
+    ans = lift_prompt(renderer, q.train, src, q.prompt, text, q.hp, lp, visibility)
     rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
-    masks = lifted_masks(rast, ans.selected, [test_cams[v] for v in views])
+    masks = lifted_masks(rast, ans.selected, [test_cams[v] for v in q.views])
     rec = ans.record(lp)
     info = {
         "fit_views": rec["views"],
@@ -201,23 +214,15 @@ class TfccModel:
             self._entry = self.renderer.decode(self.field.features)
         return self._entry
 
-    def predict(
-        self,
-        variant: str,
-        prompt: str,
-        text: np.ndarray,
-        source: ResSource,
-        train: list[Camera],
-        hp: HyperplaneParams,
-        planes: HyperplaneRun,
-        views: list[str],
-    ) -> Prediction:
+    def predict(self, variant: str, q: Question) -> Prediction:
         info: dict = {}
+        views = q.views
         if variant == "full":
             try:
                 plane, _ = fit_hyperplane(
-                    self.renderer, self.path, train, prompt, text, "eval", source, hp, planes
-                )
+                    self.renderer, self.path, q.train, q.prompt, q.text, "eval", q.source, q.hp,
+                    q.planes,
+                )  # fmt: skip
             except NothingFound as e:  # an empty answer, as goi query gives
                 warn(f"{e}: the answer is empty")
                 masks = {v: np.zeros(self.views[v].covered.shape, bool) for v in views}
@@ -225,7 +230,7 @@ class TfccModel:
                 return Prediction(masks, none, {"fit_views": []}, none.astype(np.float32))
             info = _fit_record(plane.info, json.loads(plane.info["views"]))
         else:
-            plane = threshold_plane(prompt, text, self.field.unit_codebook(), hp.threshold)
+            plane = threshold_plane(q.prompt, q.text, self.field.unit_codebook(), q.hp.threshold)
         masks = {v: mask_of(plane, self.views[v]) for v in views}
         scores = plane_probability(self.field, plane, self.entry)
         return Prediction(masks, select(self.field, plane), info, scores)
@@ -240,22 +245,13 @@ class DirectModel:
     views: dict[str, DirectView]  # test view -> rendered features
     gaussians: np.ndarray  # [G, D] each Gaussian's decoded unit feature
 
-    def predict(
-        self,
-        variant: str,
-        text: np.ndarray,
-        source: ResSource,
-        train: list[Camera],
-        hp: HyperplaneParams,
-        views: list[str],
-        seed: int,
-    ) -> Prediction:
-        W, b, info = text.astype(np.float64), -hp.threshold, {}
+    def predict(self, variant: str, q: Question) -> Prediction:
+        W, b, info = q.text.astype(np.float64), -q.hp.threshold, {}
         if variant == "without_tfcc":
-            chosen = choose_views(source, train, hp)
-            W, b, rec = fit_direct_plane(self.renderer, chosen, text, hp, seed)
+            chosen = choose_views(q.source, q.train, q.hp)
+            W, b, rec = fit_direct_plane(self.renderer, chosen, q.text, q.hp, q.seed)
             info = _fit_record(rec, [c.name for c, _ in chosen])
-        masks = {v: self.views[v].scores(self.field, W, b) > 0 for v in views}
+        masks = {v: self.views[v].scores(self.field, W, b) > 0 for v in q.views}
         z = self.gaussians @ W.astype(np.float32) + b  # [G]
         selected = self.field.seen & (z > 0)
         scores = np.where(self.field.seen, probability(z), 0.0).astype(np.float32)
@@ -289,40 +285,19 @@ class Answerers:
             vis = VisibilityCache(rast)
         return cls(tfcc, direct, rast, vis, {c.name: c for c in test})
 
-    def predict(
-        self,
-        variant: str,
-        prompt: str,
-        text: np.ndarray,
-        source: ResSource,
-        train: list[Camera],
-        hp: HyperplaneParams,
-        lp: LiftParams,
-        planes: HyperplaneRun,
-        views: list[str],
-        seed: int,
-    ) -> Prediction:
-        """The variant's answer to a prompt on the test `views`."""
+    def predict(self, variant: str, q: Question) -> Prediction:
+        """The variant's answer to the question on its test views."""
         if variant in ("lifted", "lifted_fieldless"):
             renderer: SemanticRenderer | Rasterizer = self.rast
+            entry = None
             if variant == "lifted":
                 assert self.tfcc is not None
-                renderer = self.tfcc.renderer
+                renderer, entry = self.tfcc.renderer, self.tfcc.entry
             return predict_lifted(
-                renderer,
-                self.visibility,
-                self.cams,
-                prompt,
-                text if variant == "lifted" else None,
-                source,
-                train,
-                hp,
-                lp,
-                views,
-                self.tfcc.entry if variant == "lifted" and self.tfcc is not None else None,
+                renderer, self.visibility, self.cams, q, variant == "lifted", entry
             )
         if FIELD_KIND[variant] == "tfcc":
             assert self.tfcc is not None
-            return self.tfcc.predict(variant, prompt, text, source, train, hp, planes, views)
+            return self.tfcc.predict(variant, q)
         assert self.direct is not None
-        return self.direct.predict(variant, text, source, train, hp, views, seed)
+        return self.direct.predict(variant, q)

@@ -318,7 +318,15 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
     root = Path(path)
     mf = root / MANIFEST
     if not mf.is_file():
-        raise GoiError(f"--bundle: {root} has no {MANIFEST}")
+        what = (
+            "a Hugging Face checkpoint, not a model bundle"
+            if (root / "config.json").is_file()
+            else "not a model bundle"
+        )
+        raise GoiError(
+            f"--bundle: {root} has no {MANIFEST}: {what}; `goi export-model CHECKPOINT... "
+            "--out BUNDLE` makes a bundle from Hugging Face checkpoints (docs/models.md)"
+        )
     manifest = read_json(mf)
     validate_json(manifest, "goi.bundle", str(mf))
     check_values(manifest, str(mf))  # every value typed, finite, in range: before any model

@@ -23,7 +23,7 @@ import numpy as np
 
 from stages.core.artifacts import check_writable, open_h5, put, stamp, write_h5
 from stages.core.errors import GoiError
-from stages.core.files import create_partial, partial_exists, regular_file
+from stages.core.files import create_partial, finish_partial, partial_exists, regular_file
 from stages.core.report import SILENT, Report, size_text
 from stages.core.staging import kept_on_interrupt
 from stages.render.composite import blend_weights, pooled_blend_weights
@@ -305,9 +305,7 @@ def build_cache_file(
                 write_view(views, cam.name, view_weights(rast, cam, position, k, want[cam.name]))
                 f.flush()
             stamp(f, SCHEMA, inputs)  # once, at the end: equal inputs give equal bytes
-    with open(partial, "rb+") as fh:
-        os.fsync(fh.fileno())
-    os.replace(partial, path)
+    finish_partial(partial, path)
     report.log(
         f"blend cache built in {time.perf_counter() - t:.1f} s ({len(cameras)} views, "
         f"{size_text(path.stat().st_size)} at {path})"

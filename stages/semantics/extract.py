@@ -7,7 +7,6 @@ already done are skipped) and the finished file is renamed to `<out>` only at th
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +20,7 @@ from stages.core.errors import GoiError
 from stages.core.files import (
     check_output_name,
     create_partial,
+    finish_partial,
     output_lock,
     partial_exists,
     refuse_inputs,
@@ -55,15 +55,19 @@ class ExtractRun:
     """Replace an existing output."""
 
 
-def _write_views(
-    run: ExtractRun,
-    scene: Scene,
-    names: list[str],
-    source: str,
-    inputs: dict[str, str],
-    make: Callable[[str], np.ndarray],
-    report: Report,
-) -> Path:
+@dataclass
+class _Views:
+    """What an extraction writes: the scene's views `names`, each one's features [h, w, D]
+    made by `make`, recorded as coming from `source` with the inputs' digests."""
+
+    scene: Scene
+    names: list[str]
+    source: str
+    inputs: dict[str, str]
+    make: Callable[[str], np.ndarray]
+
+
+def _write_views(run: ExtractRun, job: _Views, report: Report) -> Path:
     out = run.out
     check_writable(out, run.force, "--out")
     check_output_name(_partial(out), "--out")
@@ -73,7 +77,7 @@ def _write_views(
         if partial_exists(partial, "--out"):
             try:
                 with h5py.File(partial, "r") as f:
-                    same = json.loads(f.attrs.get("inputs", "{}")) == inputs
+                    same = json.loads(f.attrs.get("inputs", "{}")) == job.inputs
             except (OSError, ValueError, TypeError):
                 same = False
             mode = "r+" if same else "w"
@@ -81,20 +85,11 @@ def _write_views(
                 report.log(f"resuming {partial}")
         if mode == "w":
             create_partial(partial, "--out")
-        return _write_partial(partial, mode, out, scene, names, source, inputs, make, report)
+        return _write_partial(partial, mode, out, job, report)
 
 
-def _write_partial(
-    partial: Path,
-    mode: str,
-    out: Path,
-    scene: Scene,
-    names: list[str],
-    source: str,
-    inputs: dict[str, str],
-    make: Callable[[str], np.ndarray],
-    report: Report,
-) -> Path:
+def _write_partial(partial: Path, mode: str, out: Path, job: _Views, report: Report) -> Path:
+    scene, names, inputs = job.scene, job.names, job.inputs
     # On a failure nothing of this run is worth keeping, so a partial file it created goes.
     # An interruption (Ctrl-C, a crash) keeps it, so that the next run resumes it.
     with kept_on_interrupt(partial, created=mode == "w"):
@@ -102,7 +97,7 @@ def _write_partial(
         with h5py.File(partial, mode, track_order=True) as f:
             if mode == "w":
                 stamp(f, SCHEMA, inputs)
-                f.attrs["source"] = source
+                f.attrs["source"] = job.source
                 f.create_group("views", track_order=True)
             views = f["views"]
             for v in [n for n in names if n in views]:
@@ -110,7 +105,7 @@ def _write_partial(
                     del views[v]  # a view cut off while being written
             todo = [n for n in names if n not in views]
             for name in report.progress(todo, "extract", length=len(todo)):
-                hwd = make(name)
+                hwd = job.make(name)
                 if dim is None:
                     dim = int(f.attrs.get("dim", hwd.shape[2]))
                 if hwd.shape[2] != dim:
@@ -127,9 +122,7 @@ def _write_partial(
             if "dim" not in f.attrs:
                 raise GoiError("no views to extract")
             stamp(f, SCHEMA, inputs)  # `created` becomes the time the last view was written
-    with open(partial, "rb+") as fh:
-        os.fsync(fh.fileno())
-    os.replace(partial, out)
+    finish_partial(partial, out)
     return out
 
 
@@ -185,7 +178,7 @@ def import_features(
             )
         return resample(chw, p.max_side)
 
-    return _write_views(run, scene, list(files), f"import:{src}", inputs, make, report)
+    return _write_views(run, _Views(scene, list(files), f"import:{src}", inputs, make), report)
 
 
 def encode_views(
@@ -209,4 +202,4 @@ def encode_views(
             raise GoiError(f"{bundle_dir}: image encoder returned NaN/inf for view '{name}'")
         return resample(chw, p.max_side)
 
-    return _write_views(run, scene, names, f"bundle:{bundle.name}", inputs, make, report)
+    return _write_views(run, _Views(scene, names, f"bundle:{bundle.name}", inputs, make), report)

@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import resource
 import signal
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,32 +22,28 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from stages.core.arrays import unit_norms
 from stages.core.errors import GoiError
 from stages.core.files import check_output_name, output_lock, refuse_if_input, refuse_inputs
 from stages.core.report import SILENT, Report
 from stages.scene.gaussians import ply_count
 from stages.scene.scene import Scene
-from stages.semantics.blend_cache import cache_nbytes, cache_sizes
+from stages.semantics.blend_cache import cache_sizes
 from stages.semantics.cache_shards import SCHEMA as SHARD_CACHE
 from stages.semantics.cache_shards import build_shards, column_range, plan_shard, shard_order
 from stages.semantics.checkpoint import SHARD_SCHEMA, check_checkpoint, load_checkpoint
 from stages.semantics.checkpoint import save_checkpoint as save_ckpt
 from stages.semantics.distributed import Ranks, SumOverRanks, collective, start, stop, torchrun_env
 from stages.semantics.feature_renderer import FeatureRenderer, GradBuffers
-from stages.semantics.features import load_features
 from stages.semantics.field import save_field
-from stages.semantics.field_model import FieldModel, FieldParams
+from stages.semantics.field_model import FieldParams
 from stages.semantics.fit_field import (
     FieldRun,
+    Training,
     check_renders,
     deterministic,
-    draw_cells,
-    loss_line,
-    make_optimizer,
+    feature_targets,
     prepare_fit,
-    step_targets,
-    take_step,
+    streaming,
 )
 from stages.semantics.memory import GIB, memory_budget, rank_working_set
 
@@ -158,10 +153,8 @@ def _fit(
         build_shards(plan, scene, s.train, p.top_k, want, ranks, s.cache_path, report)
         # The PLY was needed to rasterise the shards; the fit is not.
         scene.__dict__.pop("gaussians", None)
-    per_view = cache_nbytes(plan.path, s.views)
-    stream = need + sum(per_view.values()) > budget
+    stream, step_need, _ = streaming(plan.path, s.views, need, budget, p)
     if stream:
-        step_need = need + sum(sorted(per_view.values())[-p.views_per_step :])
         if step_need > budget:
             raise GoiError(
                 f"--max-memory-gib: rank {ranks.rank} needs {step_need / GIB:.2f} GiB even "
@@ -171,10 +164,7 @@ def _fit(
         report.log(f"streaming the blend cache shards ({plan.path} on rank {ranks.rank})")
     order = shard_order(plan)  # [n_cols] PLY ids of this rank's Gaussians
 
-    fm = load_features(features_path, s.views, unit=False)
-    targets = {v: m.reshape(-1, fm.dim) for v, m in fm.maps.items()}  # [cells, D] float16
-    norms = {v: unit_norms(m.astype(np.float32)) for v, m in targets.items()}  # [cells]
-    del fm
+    targets = feature_targets(features_path, s.views)
 
     def shard(names: list[str], check: bool) -> FeatureRenderer:
         return FeatureRenderer.from_file(plan.path, names, order, check, SHARD_CACHE)
@@ -185,15 +175,11 @@ def _fit(
     else:
         fr = shard(s.views, True)
 
-    torch.manual_seed(p.seed)  # the decoder's initial weights: the same on every rank
-    model = FieldModel(n_cols, p.sem_dim, s.codebook, p.no_tfcc)  # rows in column order
-    opt = make_optimizer(model, p)
-    rng = np.random.default_rng(p.seed)
-    curve: list[list[float]] = []
+    t = Training.start(n_cols, s, p)  # rows in column order
     first = _resume_point(found, ranks)
     if first:
-        first, curve = load_checkpoint(
-            found[first], model, opt, rng, s.inputs, config, SHARD_SCHEMA, attrs
+        first, t.curve = load_checkpoint(
+            found[first], t.model, t.opt, t.rng, s.inputs, config, SHARD_SCHEMA, attrs
         )
         report.log(f"resuming the {ranks.world} ranks' checkpoints at iteration {first}")
     elif run.resume:
@@ -203,37 +189,37 @@ def _fit(
             refuse_if_input(c)
             c.unlink(missing_ok=True)
 
-    def checkpoint(done: int) -> None:
-        if latest.is_file():
-            latest.replace(prev)
-        save_ckpt(latest, model, opt, rng, done, curve, s.inputs, config, SHARD_SCHEMA, attrs)
-
     buffers = GradBuffers()
-    steps = range(first, p.iterations)
-    t_fit = time.perf_counter()
     sent = 0
-    for it in report.progress(steps, "fit-field", length=len(steps), show=loss_line(curve)):
-        drawn = draw_cells(rng, s.views, s.sizes, p)
+
+    def render(drawn: list[tuple[str, np.ndarray]]) -> torch.Tensor:
+        nonlocal fr, sent
         if stream:
             fr = shard([v for v, _ in drawn], False)
         rows = np.concatenate([fr.rows(v, cells) for v, cells in drawn])
-        partial = fr.render(model.features, rows, in_columns=True, buffers=buffers)  # [B, S]
-        f_hat = SumOverRanks.apply(partial, ranks)  # [B, S], the same on every rank
+        partial = fr.render(t.model.features, rows, in_columns=True, buffers=buffers)  # [B, S]
         sent = partial.numel() * partial.element_size()
-        curve.append(take_step(model, opt, f_hat, step_targets(drawn, targets, norms), it, p))
-        done = it + 1
+        return SumOverRanks.apply(partial, ranks)  # [B, S], the same on every rank
+
+    def after(done: int) -> None:
+        # the last one too: a leader lost while writing the field resumes
         if run.checkpoint_every and (done % run.checkpoint_every == 0 or done == p.iterations):
-            checkpoint(done)  # the last one too: a leader lost while writing the field resumes
+            if latest.is_file():
+                latest.replace(prev)
+            save_ckpt(
+                latest, t.model, t.opt, t.rng, done, t.curve, s.inputs, config, SHARD_SCHEMA, attrs
+            )
+
+    n_steps, seconds = t.run(first, s, p, targets, render, after, report)
     report.log(
-        f"fitted {len(steps)} iterations on {ranks.world} ranks ({torch.get_num_threads()} "
-        f"threads on rank 0) in {time.perf_counter() - t_fit:.1f} s; all_reduce of {sent} "
-        "bytes per step"
+        f"fitted {n_steps} iterations on {ranks.world} ranks ({torch.get_num_threads()} "
+        f"threads on rank 0) in {seconds:.1f} s; all_reduce of {sent} bytes per step"
     )
-    features = _gather_features(model.features.detach(), order, n, ranks)
+    features = _gather_features(t.model.features.detach(), order, n, ranks)
     if features is not None:
-        arrays = {k: v for k, v in model.arrays().items() if k != "features"}
+        arrays = {k: v for k, v in t.model.arrays().items() if k != "features"}
         arrays["features"] = features
-        save_field(run.out, arrays, np.asarray(curve), s.views, config, s.inputs, run.force)
+        save_field(run.out, arrays, np.asarray(t.curve), s.views, config, s.inputs, run.force)
         del features, arrays
     peaks = ranks.gather_objects(_peak_rss(), "the field's write")
     report.log(

@@ -238,6 +238,70 @@ def loss_line(curve: list[list[float]]) -> Callable[[object], str]:
     return show
 
 
+@dataclass
+class Training:
+    """A fit's state between steps: the model, its optimiser, the cells' draw and the losses."""
+
+    model: FieldModel
+    opt: torch.optim.Adam
+    rng: np.random.Generator
+    curve: list[list[float]]
+
+    @classmethod
+    def start(
+        cls, n_rows: int, s: FitSetup, p: FieldParams, order: np.ndarray | None = None
+    ) -> Training:
+        """Fresh from the seed: the decoder's initial weights and the draws are the same on
+        every run (and every rank of a distributed fit)."""
+        torch.manual_seed(p.seed)
+        model = FieldModel(n_rows, p.sem_dim, s.codebook, p.no_tfcc, order=order)
+        return cls(model, make_optimizer(model, p), np.random.default_rng(p.seed), [])
+
+    def run(
+        self,
+        first: int,
+        s: FitSetup,
+        p: FieldParams,
+        targets: tuple[dict[str, np.ndarray], dict[str, np.ndarray]],
+        render: Callable[[list[tuple[str, np.ndarray]]], torch.Tensor],
+        after: Callable[[int], None],
+        report: Report,
+    ) -> tuple[int, float]:
+        """Iterations first .. p.iterations: draw the cells, `render` the field at them [B, S],
+        one Adam step, then `after(iterations done)`. Returns the steps taken and seconds."""
+        steps = range(first, p.iterations)
+        t_fit = time.perf_counter()
+        show = loss_line(self.curve)
+        for it in report.progress(steps, "fit-field", length=len(steps), show=show):
+            drawn = draw_cells(self.rng, s.views, s.sizes, p)
+            f_hat = render(drawn)
+            v_gt = step_targets(drawn, *targets)
+            self.curve.append(take_step(self.model, self.opt, f_hat, v_gt, it, p))
+            after(it + 1)
+        return len(steps), time.perf_counter() - t_fit
+
+
+def feature_targets(
+    features_path: Path, views: list[str]
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The views' feature maps as the fit's targets [cells, D] float16 and their norms [cells]
+    (the features are read, and checked, whole)."""
+    fm = load_features(features_path, views, unit=False)
+    targets = {v: m.reshape(-1, fm.dim) for v, m in fm.maps.items()}
+    return targets, {v: unit_norms(m.astype(np.float32)) for v, m in targets.items()}
+
+
+def streaming(
+    path: Path, views: list[str], need: int, budget: int, p: FieldParams
+) -> tuple[bool, int, int]:
+    """Whether the blend cache at `path` must be streamed (it does not fit in `budget` beside
+    the `need` of the rest), and what a step then needs (its largest views' weights and the
+    rest); the caller refuses a step that does not fit either."""
+    per_view = cache_nbytes(path, views)
+    step_need = need + sum(sorted(per_view.values())[-p.views_per_step :])
+    return need + sum(per_view.values()) > budget, step_need, sum(per_view.values())
+
+
 @deterministic
 def fit_field(
     scene: Scene,
@@ -254,17 +318,11 @@ def fit_field(
     # one run per output: a second run of the same --out (or --cache) is refused here, before
     # it reads, builds or removes anything of the first run's
     with output_lock(run.out, "--out"), output_lock(s.cache_path, "--cache"):
-        return _fit(scene, features_path, codebook_path, p, run, s, report)
+        return _fit(scene, features_path, p, run, s, report)
 
 
 def _fit(
-    scene: Scene,
-    features_path: Path,
-    codebook_path: Path,
-    p: FieldParams,
-    run: FieldRun,
-    s: FitSetup,
-    report: Report,
+    scene: Scene, features_path: Path, p: FieldParams, run: FieldRun, s: FitSetup, report: Report
 ) -> Path:
     cache_path, train, views, sizes = s.cache_path, s.train, s.views, s.sizes
     g = scene.gaussians
@@ -283,13 +341,11 @@ def _fit(
         )
     reuse_cache = cache_target(cache_path, scene, train, p.top_k, sizes, run.force)
 
-    fm = load_features(features_path, views, unit=False)
+    targets = feature_targets(features_path, views)
     if not reuse_cache:
         build_cache_file(cache_path, scene, train, p.top_k, cache_sizes(train, sizes), report)
-    per_view = cache_nbytes(cache_path, views)
-    stream = need + sum(per_view.values()) > budget
+    stream, step_need, cache_bytes = streaming(cache_path, views, need, budget, p)
     if stream:
-        step_need = need + sum(sorted(per_view.values())[-p.views_per_step :])
         if step_need > budget:
             raise GoiError(
                 f"--max-memory-gib: even streaming the blend cache needs {size_text(step_need)} "
@@ -298,9 +354,8 @@ def _fit(
                 "for the next run)"
             )
         report.log(
-            f"streaming the blend cache from {cache_path}: its "
-            f"{size_text(sum(per_view.values()))} do not fit in "
-            f"{size_text(budget)} beside the rest ({size_text(need)})"
+            f"streaming the blend cache from {cache_path}: its {size_text(cache_bytes)} do not "
+            f"fit in {size_text(budget)} beside the rest ({size_text(need)})"
         )
         order = None  # read (and checked) with the first view, then reused
         for v in report.progress(views, "check cache", length=len(views)):
@@ -309,39 +364,32 @@ def _fit(
         fr = FeatureRenderer.from_file(cache_path, views)
         order = fr.order
     buffers = GradBuffers()
-    targets = {v: m.reshape(-1, fm.dim) for v, m in fm.maps.items()}  # [cells, D] float16
-    norms = {v: unit_norms(m.astype(np.float32)) for v, m in targets.items()}  # [cells]
-
-    torch.manual_seed(p.seed)
-    model = FieldModel(g.count, p.sem_dim, s.codebook, p.no_tfcc, order=order)
-    opt = make_optimizer(model, p)
-    rng = np.random.default_rng(p.seed)
-    curve: list[list[float]] = []
+    t = Training.start(g.count, s, p, order)
     start = 0
     if run.resume and run.checkpoint.is_file():
-        start, curve = load_checkpoint(run.checkpoint, model, opt, rng, inputs, p.config())
+        start, t.curve = load_checkpoint(run.checkpoint, t.model, t.opt, t.rng, inputs, p.config())
         report.log(f"resuming {run.checkpoint} at iteration {start}")
 
-    steps = range(start, p.iterations)
-    t_fit = time.perf_counter()
-    for it in report.progress(steps, "fit-field", length=len(steps), show=loss_line(curve)):
-        drawn = draw_cells(rng, views, sizes, p)
+    def render(drawn: list[tuple[str, np.ndarray]]) -> torch.Tensor:
+        nonlocal fr
         if stream:  # same rows in the same order as in memory: the same field, bit for bit
             fr = FeatureRenderer.from_file(
                 cache_path, [v for v, _ in drawn], order=order, check=False
             )
         rows = np.concatenate([fr.rows(v, cells) for v, cells in drawn])
-        f_hat = fr.render(model.features, rows, in_columns=True, buffers=buffers)
-        curve.append(take_step(model, opt, f_hat, step_targets(drawn, targets, norms), it, p))
-        done = it + 1
-        if run.checkpoint_every and done % run.checkpoint_every == 0 and done < p.iterations:
-            save_checkpoint(run.checkpoint, model, opt, rng, done, curve, inputs, p.config())
+        return fr.render(t.model.features, rows, in_columns=True, buffers=buffers)
 
+    def after(done: int) -> None:
+        if run.checkpoint_every and done % run.checkpoint_every == 0 and done < p.iterations:
+            save_checkpoint(
+                run.checkpoint, t.model, t.opt, t.rng, done, t.curve, inputs, p.config()
+            )
+
+    n_steps, seconds = t.run(start, s, p, targets, render, after, report)
     report.log(
-        f"fitted {len(steps)} iterations in {time.perf_counter() - t_fit:.1f} s "
-        f"({(time.perf_counter() - t_fit) / max(len(steps), 1):.3f} s each)"
+        f"fitted {n_steps} iterations in {seconds:.1f} s ({seconds / max(n_steps, 1):.3f} s each)"
     )
-    save_field(run.out, model.arrays(), np.asarray(curve), views, p.config(), inputs, run.force)
+    save_field(run.out, t.model.arrays(), np.asarray(t.curve), views, p.config(), inputs, run.force)
     refuse_if_input(run.checkpoint)
     run.checkpoint.unlink(missing_ok=True)
     return run.out

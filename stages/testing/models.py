@@ -2,6 +2,12 @@
 SAM 2 and CLIPSeg, tiny (seconds to export) or at the real checkpoints' configurations (the
 real cost).
 
+    python -m stages.testing.models --bundle OUT
+
+writes the tests' tiny Grounded-SAM as a model bundle with RANDOM weights (about a minute, no
+download), for trying `goi index-res` and the `--bundle` / `--res-index` paths on a scene: its
+masks mean nothing.
+
 Checkpoints are written as Hugging Face directories (config.json, model.safetensors,
 tokenizer.json, preprocessor_config.json), so they go through `goi export-model` exactly as a
 downloaded one does. Weights are redrawn by `realistic_init`: transformers' own initialisation
@@ -11,10 +17,23 @@ would make any comparison of outputs meaningless. Needs torch, transformers and 
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
+from stages.core.errors import GoiError
+from stages.core.report import Lines
+
+#: The tiny Grounded-SAM bundle's export settings (the tests' and the random bundle's).
+GROUNDED: dict[str, Any] = {
+    "canvas": (96, 128),
+    "box_threshold": 0.5,
+    "max_boxes": 3,
+    "mask_threshold": 0.0,
+}
 #: OWLv2's processor statistics (CLIP's).
 OWL_STATS = {
     "image_mean": [0.48145466, 0.4578275, 0.40821073],
@@ -199,6 +218,20 @@ def sam2(real: bool = False, image_size: int = 128, seed: int = 0) -> Any:
     return realistic_init(model, seed, skip=("positional_embedding",))
 
 
+def tiny_towers(
+    layers: int, image_size: int, patch: int = 16, vocab: int = 100, bos: int = 98, eos: int = 99
+) -> tuple[dict, dict]:
+    """A tiny CLIP's text and vision tower configs (32 wide, 4 heads, 16 tokens), as CLIP,
+    CLIPSeg and OWLv2 configs take them."""
+    width = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=layers)
+    text = dict(
+        vocab_size=vocab, **width, num_attention_heads=4, max_position_embeddings=16,
+        bos_token_id=bos, eos_token_id=eos, pad_token_id=0,
+    )  # fmt: skip
+    vision = dict(**width, num_attention_heads=4, image_size=image_size, patch_size=patch)
+    return text, vision
+
+
 def clipseg(real: bool = False, seed: int = 0) -> Any:
     """CLIPSegForImageSegmentation: tiny, or CIDAS/clipseg-rd64-refined's config (CLIP
     ViT-B/16 + CLIP's text tower, reduce_dim 64, the refined transposed convolution)."""
@@ -216,17 +249,10 @@ def clipseg(real: bool = False, seed: int = 0) -> Any:
             use_complex_transposed_convolution=True,
         )  # fmt: skip
     else:
+        text, vision = tiny_towers(layers=3, image_size=32)
         cfg = CLIPSegConfig(
-            text_config=dict(
-                vocab_size=100, hidden_size=32, intermediate_size=64, num_hidden_layers=3,
-                num_attention_heads=4, max_position_embeddings=16, bos_token_id=98,
-                eos_token_id=99, pad_token_id=0,
-            ),
-            vision_config=dict(
-                hidden_size=32, intermediate_size=64, num_hidden_layers=3, num_attention_heads=4,
-                image_size=32, patch_size=16,
-            ),
-            projection_dim=16, extract_layers=[0, 1, 2], reduce_dim=16,
+            text_config=text, vision_config=vision, projection_dim=16, extract_layers=[0, 1, 2],
+            reduce_dim=16,
             decoder_num_attention_heads=2, decoder_intermediate_size=32,
             use_complex_transposed_convolution=True,
         )  # fmt: skip
@@ -247,18 +273,8 @@ def owlv2(real: bool = False, seed: int = 0) -> Any:
             vision_config=dict(image_size=960, patch_size=16),
         )
     else:
-        cfg = Owlv2Config(
-            text_config=dict(
-                vocab_size=100, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
-                num_attention_heads=4, max_position_embeddings=16, bos_token_id=98,
-                eos_token_id=99, pad_token_id=0,
-            ),
-            vision_config=dict(
-                hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4,
-                image_size=64, patch_size=16,
-            ),
-            projection_dim=32,
-        )  # fmt: skip
+        text, vision = tiny_towers(layers=2, image_size=64)
+        cfg = Owlv2Config(text_config=text, vision_config=vision, projection_dim=32)
     torch.manual_seed(seed)
     model = Owlv2ForObjectDetection._from_config(cfg, attn_implementation="eager").eval()
     return realistic_init(model, seed)
@@ -307,3 +323,65 @@ def checkpoints(root: Path, real: bool = False, sam_size: int = 128) -> dict[str
             owlv2(real), root / "owlv2", clip_tokenizer(clipseg_vocab), OWL_STATS
         ),
     }
+
+
+def random_bundle(out: Path, force: bool = False, report: Any = None) -> Path:
+    """The tiny Grounded-SAM (Grounding DINO and a 128 px SAM) exported as a bundle at `out`,
+    with RANDOM weights: the manifest's name says so (RANDOM-WEIGHTS-...)."""
+    from stages.models.export import ModelExportParams, ModelExportRun, export_model
+
+    opts = ModelExportParams(
+        detector_height=GROUNDED["canvas"][0],
+        detector_width=GROUNDED["canvas"][1],
+        box_threshold=GROUNDED["box_threshold"],
+        max_boxes=GROUNDED["max_boxes"],
+        mask_threshold=GROUNDED["mask_threshold"],
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        ck = Path(tmp)
+        det = save_checkpoint(
+            grounding_dino(), ck / "RANDOM-WEIGHTS-grounding-dino", bert_tokenizer()
+        )
+        seg = save_checkpoint(sam(), ck / "RANDOM-WEIGHTS-sam")
+        return export_model(
+            [det, seg], opts, ModelExportRun(out=out, force=force), report or Lines()
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m stages.testing.models",
+        description="Write a small model bundle with RANDOM weights (the tests' tiny "
+        "Grounded-SAM), for trying goi index-res and the --bundle / --res-index paths without "
+        "downloading a model. Its masks mean nothing.",
+    )
+    ap.add_argument("--bundle", type=Path, required=True, help="The bundle directory to write.")
+    ap.add_argument("--force", action="store_true", help="Replace an existing bundle.")
+    a = ap.parse_args(argv)
+    try:
+        import transformers  # noqa: F401
+    except ImportError:
+        print(
+            "error: the random bundle is made by goi export-model, which needs transformers: "
+            "pip install 'goi[export]'",
+            file=sys.stderr,
+        )
+        return 2
+    print(
+        "goi: RANDOM weights: this bundle is for trying the paths, not for answers", file=sys.stderr
+    )
+    try:
+        out = random_bundle(a.bundle, a.force, Lines(lambda m: print(f"goi: {m}", file=sys.stderr)))
+    except GoiError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"bundle (RANDOM weights, its masks mean nothing): {out}")
+    print(
+        f"try: goi index-res --scene SCENE --bundle {out} --out index.h5, then goi query "
+        f"--scene SCENE --prompt TEXT --lift --bundle {out} --res-index index.h5 --out q"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -3,14 +3,24 @@ import sys
 
 import pytest
 
-from goi_cli.main import main
+from goi_cli.main import cli, main
 from tests.helpers import DEV_ROOM, random_vertex, write_ply
 
 
-def test_help_lists_the_built_stages(capsys):
+def test_help_lists_the_built_stages(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "80")
     assert main(["--help"]) == 0
     out = capsys.readouterr().out
     assert "inspect" in out
+    listed = out[out.index("Commands:") :].splitlines()[1:]
+    # every command's summary is whole, on one line of an 80-column terminal
+    assert len(listed) == len(cli.commands) and all(line.rstrip().endswith(".") for line in listed)
+    assert not any("..." in line or "\u2026" in line for line in listed)
+    assert any(
+        line.split() == ["extract-features", "An", "alias", "of", "extract."] for line in listed
+    )
+    assert main(["extract-features", "--help"]) == 0
+    assert "The same command as `goi extract` (an alias)." in capsys.readouterr().out
 
 
 def test_inspect_a_good_ply(tmp_path, capsys):

@@ -8,22 +8,22 @@ def _m(rows):
     return np.array(rows, bool)
 
 
-def test_known_values():
-    gt = _m([[1, 1, 0, 0], [0, 0, 0, 0]])
-    pred = _m([[1, 0, 1, 0], [0, 0, 0, 0]])
-    s = image_scores(pred, gt)
+#: ground truth, prediction, (IoU, mPA, mP) worked out by hand
+KNOWN = [
     # TP 1, FP 1, FN 1, TN 5
-    assert s.iou == pytest.approx(1 / 3)
-    assert s.mpa == pytest.approx((1 / 2 + 5 / 6) / 2)
-    assert s.mp == pytest.approx((1 / 2 + 5 / 6) / 2)
-    gt2 = _m([[1, 1, 1, 1], [0, 0, 0, 0]])
-    pred2 = _m([[1, 1, 0, 0], [1, 0, 0, 0]])
+    ([[1, 1, 0, 0], [0, 0, 0, 0]], [[1, 0, 1, 0], [0, 0, 0, 0]],
+     (1 / 3, (1 / 2 + 5 / 6) / 2, (1 / 2 + 5 / 6) / 2)),
     # TP 2, FP 1, FN 2, TN 3
-    s2 = image_scores(pred2, gt2)
-    assert s2.iou == pytest.approx(2 / 5)
-    assert s2.mpa == pytest.approx((2 / 4 + 3 / 4) / 2)
-    assert s2.mp == pytest.approx((2 / 3 + 3 / 5) / 2)
-    assert mean_scores([s, s2]).iou == pytest.approx((1 / 3 + 2 / 5) / 2)
+    ([[1, 1, 1, 1], [0, 0, 0, 0]], [[1, 1, 0, 0], [1, 0, 0, 0]],
+     (2 / 5, (2 / 4 + 3 / 4) / 2, (2 / 3 + 3 / 5) / 2)),
+]  # fmt: skip
+
+
+def test_known_values():
+    scores = [image_scores(_m(pred), _m(gt)) for gt, pred, _ in KNOWN]
+    for s, (_, _, want) in zip(scores, KNOWN, strict=True):
+        assert (s.iou, s.mpa, s.mp) == pytest.approx(want)
+    assert mean_scores(scores).iou == pytest.approx((1 / 3 + 2 / 5) / 2)
 
 
 def test_empty_prediction_and_empty_ground_truth():

@@ -15,6 +15,8 @@ from tests.helpers import front_camera, random_vertex, write_ply
 
 DIM = 12
 VOCAB = ["[UNK]", "red", "chair", "the", "green", "sofa"]
+#: The test bundles' image normalisation.
+NORMALISED = {"mean": [0.5, 0.5, 0.5], "std": [0.25, 0.25, 0.25], "channel_order": "RGB"}
 
 
 class Dense(torch.nn.Module):
@@ -86,9 +88,7 @@ def make_bundle(root, image_output="features"):
             "file": "image_encoder.onnx",
             "input": "image",
             "output": "features",
-            "mean": [0.5, 0.5, 0.5],
-            "std": [0.25, 0.25, 0.25],
-            "channel_order": "RGB",
+            **NORMALISED,
         },
         "text_encoder": {
             "file": "text_encoder.onnx",
@@ -155,6 +155,18 @@ def test_manifest_problems_are_named(tmp_path):
     _refused(root, "version 7.0")
 
 
+def test_a_directory_without_a_manifest_names_export_model(tmp_path):
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    (ckpt / "config.json").write_text("{}")
+    with pytest.raises(GoiError) as e:
+        load_bundle(ckpt)
+    assert str(e.value).startswith(f"--bundle: {ckpt} has no manifest.json: a Hugging Face ")
+    assert "`goi export-model CHECKPOINT... --out BUNDLE`" in str(e.value)
+    with pytest.raises(GoiError, match="not a model bundle; `goi export-model"):
+        load_bundle(tmp_path)
+
+
 def test_extract_with_a_bundle(tmp_path, capsys):
     root, *_ = make_bundle(tmp_path / "b")
     d = tmp_path / "scene"
@@ -210,9 +222,7 @@ def test_res_model_gives_the_thresholded_mask(tmp_path):
         "image_input": "image",
         "input_ids": "input_ids",
         "output": "scores",
-        "mean": [0.5, 0.5, 0.5],
-        "std": [0.25, 0.25, 0.25],
-        "channel_order": "RGB",
+        **NORMALISED,
         "threshold": 0.0,
     }
     (root / "manifest.json").write_text(json.dumps(manifest))

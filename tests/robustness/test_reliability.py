@@ -151,6 +151,14 @@ FAST = settings(
 )
 
 
+def read_or_refuse(read, path) -> None:  # noqa: ANN001
+    """`read` reads `path` or refuses it with a GoiError: never another exception."""
+    try:
+        read(path)
+    except GoiError:
+        pass
+
+
 @FAST
 @given(st.binary(max_size=2000))
 def test_ply_reader_on_arbitrary_bytes(tmp_path_factory, data):
@@ -169,10 +177,7 @@ def test_ply_reader_on_corrupted_files(tmp_path_factory, pos, junk):
     data = bytearray(p.read_bytes())
     data[pos : pos + len(junk)] = junk
     p.write_bytes(bytes(data))
-    try:
-        load_ply(p)
-    except GoiError:
-        pass
+    read_or_refuse(load_ply, p)
 
 
 @FAST
@@ -208,10 +213,7 @@ JSONISH = st.recursive(
 def test_cameras_reader_on_arbitrary_json(tmp_path_factory, doc):
     p = tmp_path_factory.mktemp("cams") / "cameras.json"
     p.write_text(json.dumps(doc))
-    try:
-        load_cameras(p)
-    except GoiError:
-        pass
+    read_or_refuse(load_cameras, p)
 
 
 @FAST
@@ -239,10 +241,7 @@ def test_hdf5_readers_on_corrupted_artifacts(small, tmp_path_factory, pos, junk)
     data[pos : pos + len(junk)] = junk
     p = tmp_path_factory.mktemp("h5") / "c.h5"
     p.write_bytes(bytes(data))
-    try:
-        load_codebook(p)
-    except GoiError:
-        pass
+    read_or_refuse(load_codebook, p)
 
 
 @FAST

@@ -32,6 +32,11 @@ def _run(capsys, *args):
     return code, err
 
 
+def _codebook(capsys, features, out, *options) -> bool:
+    """goi init-codebook succeeded."""
+    return _run(capsys, "init-codebook", "--features", features, *options, "--out", out)[0] == 0
+
+
 def test_npy_and_pt_import_the_same_maps(scene, tmp_path, capsys):
     d, feats = scene
     pt = tmp_path / "pt"
@@ -127,21 +132,7 @@ def test_codebook_of_another_dimension_is_refused(scene, tmp_path, capsys):
     assert (
         _run(capsys, "extract", "--scene", d, "--from", feats, "--out", tmp_path / "f.h5")[0] == 0
     )
-    assert (
-        _run(
-            capsys,
-            "init-codebook",
-            "--features",
-            tmp_path / "f.h5",
-            "--entries",
-            "4",
-            "--samples",
-            "500",
-            "--out",
-            tmp_path / "c.h5",
-        )[0]
-        == 0
-    )
+    assert _codebook(capsys, tmp_path / "f.h5", tmp_path / "c.h5", "--entries", 4, "--samples", 500)
     for f in feats.iterdir():
         np.save(f, np.ones((6, 10, 20), np.float16))
     assert (
@@ -169,20 +160,8 @@ def test_codebook_is_deterministic_and_spherical(scene, tmp_path, capsys):
     d, feats = scene
     _run(capsys, "extract", "--scene", d, "--from", feats, "--out", tmp_path / "f.h5")
     for name in ("a", "b"):
-        assert (
-            _run(
-                capsys,
-                "init-codebook",
-                "--features",
-                tmp_path / "f.h5",
-                "--entries",
-                "5",
-                "--seed",
-                "3",
-                "--out",
-                tmp_path / f"{name}.h5",
-            )[0]
-            == 0
+        assert _codebook(
+            capsys, tmp_path / "f.h5", tmp_path / f"{name}.h5", "--entries", 5, "--seed", 3
         )
     from stages.semantics.codebook import load_codebook
 

@@ -105,7 +105,7 @@ def fitted(tmp_path_factory):
     ]
     r = torchrun(2, [*args, "--out", str(root / "dist.h5")], root)
     assert r.returncode == 0, r.stderr[-2000:]
-    return root, args, r.stderr
+    return root, args, r
 
 
 def torchrun(n: int, args: list[str], cwd: Path, script: str | None = None):  # noqa: ANN201
@@ -122,7 +122,9 @@ def goi_lines(text: str) -> list[str]:
 def test_two_ranks_give_the_single_process_field(fitted):
     from stages.semantics.field import load_field
 
-    root, _, err = fitted
+    root, _, run = fitted
+    err = run.stderr
+    assert run.stdout == f"field: {root / 'dist.h5'}\n"  # once, not once per rank
     a, b = load_field(root / "single.h5"), load_field(root / "dist.h5")
     for name in ("features", "decoder_weight", "decoder_bias", "codebook"):
         diff = np.abs(getattr(a, name) - getattr(b, name)).max()

@@ -7,7 +7,7 @@ import pytest
 
 import stages.semantics.blend_cache as bc
 from stages.core.errors import GoiError
-from stages.core.report import Silent
+from stages.core.report import Lines
 from stages.scene.scene import load_scene
 from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
 from stages.semantics.extract import ExtractParams, ExtractRun, import_features
@@ -19,12 +19,10 @@ from stages.semantics.memory import GIB, working_set
 from tests.helpers import semantic_scene
 
 
-class Log(Silent):
+class Log(Lines):
     def __init__(self) -> None:
         self.lines: list[str] = []
-
-    def log(self, message: str) -> None:
-        self.lines.append(message)
+        super().__init__(write=self.lines.append)
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ skip is skipped with a named warning.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,6 +66,37 @@ def skip(scene: BenchmarkScene, message: str) -> None:
     """A frame or query the reference code would skip: a named warning, and recorded."""
     scene.skipped.append(message)
     warn(message)
+
+
+def camera_or_skip(
+    scene: BenchmarkScene, cameras: dict[str, Camera], name: str, path: Path
+) -> Camera | None:
+    """The camera named `name` of the ground truth at `path`, or None, skipped with a warning:
+    GOI's eval_seg.py skips a ground truth whose rendering is missing."""
+    cam = cameras.get(name)
+    if cam is None:
+        skip(scene, f"{path}: no camera named {name!r}; skipped, as eval_seg.py skips it")
+    return cam
+
+
+def frame_index(
+    text: str,
+    parse: Callable[[str], int],
+    n: int,
+    unparsed: str,
+    outside: tuple[str, str],
+    first: int = 0,
+) -> int:
+    """A frame's index into its scene's `n` cameras or images from its number `parse(text)`,
+    counted from `first`: a text it cannot parse is refused with `unparsed`, a number outside
+    the n with `outside` = (the words before, the words after) the number."""
+    try:
+        number = parse(text)
+    except ValueError:
+        raise GoiError(unparsed) from None
+    if not first <= number < first + n:
+        raise GoiError(f"{outside[0]}{number}{outside[1]}")
+    return number - first
 
 
 #: A ground truth may be at most this many times its camera's size on a side (Mip-NeRF360's

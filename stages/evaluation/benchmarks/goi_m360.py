@@ -15,10 +15,10 @@ from stages.evaluation.benchmarks.common import (
     BenchmarkScene,
     Frame,
     Query,
+    camera_or_skip,
     checked_size,
     read_grey_cv2,
     require_dir,
-    skip,
 )
 from stages.query.prompts import check_plain_name
 from stages.scene.cameras import IMAGE_EXTS, Camera
@@ -41,9 +41,8 @@ def read_goi_m360(root: Path, scene: str, cameras: list[Camera]) -> BenchmarkSce
         out.queries.append(q)
         for f in files:
             name = f.name.split(".")[0]
-            cam = by_name.get(name)
+            cam = camera_or_skip(out, by_name, name, f)
             if cam is None:
-                skip(out, f"{f}: no camera named {name!r}; skipped, as eval_seg.py skips it")
                 continue
             frame = frames.get(name)
             if frame is None:  # the size from the header, checked before decoding

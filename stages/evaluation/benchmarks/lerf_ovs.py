@@ -20,6 +20,7 @@ from stages.evaluation.benchmarks.common import (
     BenchmarkScene,
     Frame,
     Query,
+    frame_index,
     query_id,
     require_dir,
     scaled_to,
@@ -75,17 +76,18 @@ def read_lerf_ovs(root: Path, scene: str, cameras: list[Camera]) -> BenchmarkSce
         name = info.get("name")
         if not isinstance(name, str):
             raise GoiError(f"{path}: field 'info.name' is missing or not a string")
-        try:
-            idx = int(name.split("_")[-1].split(".jpg")[0]) - 1
-        except ValueError:
-            raise GoiError(
-                f"{path}: field 'info.name' {name!r} is not frame_<number>.jpg"
-            ) from None
-        if not 0 <= idx < len(by_index):
-            raise GoiError(
-                f"{path}: frame {name!r} is view {idx + 1} of the cameras sorted by image "
-                f"name, but the scene has {len(by_index)} cameras: this frame has no camera"
-            )
+        idx = frame_index(
+            name,
+            lambda n: int(n.split("_")[-1].split(".jpg")[0]),
+            len(by_index),
+            f"{path}: field 'info.name' {name!r} is not frame_<number>.jpg",
+            (
+                f"{path}: frame {name!r} is view ",
+                f" of the cameras sorted by image name, but the scene has {len(by_index)} "
+                "cameras: this frame has no camera",
+            ),
+            first=1,  # frame_00001 is the first view
+        )
         objects = doc.get("objects")
         if not isinstance(objects, list):
             raise GoiError(f"{path}: no 'objects' list (the frame's annotated queries)")

@@ -16,6 +16,7 @@ from stages.evaluation.benchmarks.common import (
     BenchmarkScene,
     Frame,
     Query,
+    camera_or_skip,
     checked_size,
     query_id,
     read_grey_cv2,
@@ -51,9 +52,8 @@ def read_replica_goi(root: Path, scene: str, cameras: list[Camera]) -> Benchmark
         if len(parts) < 2:
             raise GoiError(f"{f}: expected <prefix>_<N>.png")
         view = "rgb_" + parts[1]
-        cam = by_name.get(view)
+        cam = camera_or_skip(out, by_name, view, f)
         if cam is None:
-            skip(out, f"{f}: no camera named {view!r}; skipped, as eval_seg.py skips it")
             continue
         frame = Frame(img_name, checked_size(cam, f, "class-id map"), f, {})
         ids = read_grey_cv2(f, "class-id map")

@@ -57,7 +57,7 @@ from stages.evaluation.pipeline import (
 )
 from stages.evaluation.report import overlay_pair, page_files_dir
 from stages.evaluation.room import Prompt, Room
-from stages.evaluation.variants import Answerers, TfccModel
+from stages.evaluation.variants import Answerers, Question, TfccModel
 from stages.query.hyperplanes import HyperplaneRun
 from stages.query.lifting import LiftParams
 from stages.query.osh import HyperplaneParams
@@ -383,10 +383,10 @@ def _answer(
     for prompt in report.progress(s.room.prompts, f"{s.bench.name} {variant}", show=_pid):
         text = s.room.embeddings[prompt.text]
         t0 = time.perf_counter()
-        pred = models.predict(
-            variant, prompt.text, text, sources[prompt.id], train, hp, lp, planes,
-            prompt.test_views, p.seed,
-        )  # fmt: skip
+        q = Question(
+            prompt.text, text, sources[prompt.id], prompt.test_views, train, hp, lp, planes, p.seed
+        )
+        pred = models.predict(variant, q)
         timer.add(f"query_{variant}", time.perf_counter() - t0)
         preds[prompt.id] = pred.masks
         if pred.scores is not None:

@@ -20,6 +20,7 @@ from stages.evaluation.benchmarks.common import (
     Frame,
     Query,
     checked_size,
+    frame_index,
     pil_nearest,
     query_id,
     read_grey,
@@ -81,18 +82,10 @@ def read_three_d_ovs(
         by_image[Path(c.image or c.name).name] = c
         by_image.setdefault(c.name, c)
     out = BenchmarkScene(scene, seg, [Query(query_id(c), c) for c in classes], [])
+    outside = f", but {d / 'images'} holds {len(images)} images: the frame has no camera"
     for folder in sorted(p for p in seg.iterdir() if p.is_dir()):
-        try:
-            idx = int(folder.name)
-        except ValueError:
-            raise GoiError(
-                f"{folder}: a segmentation folder is named by its image index (NN)"
-            ) from None
-        if not 0 <= idx < len(images):
-            raise GoiError(
-                f"{folder}: image index {idx}, but {d / 'images'} holds {len(images)} "
-                "images: the frame has no camera"
-            )
+        bad = f"{folder}: a segmentation folder is named by its image index (NN)"
+        idx = frame_index(folder.name, int, len(images), bad, (f"{folder}: image index ", outside))
         image = images[idx]
         cam = by_image.get(image.name) or by_image.get(image.stem)
         if cam is None:

@@ -12,7 +12,13 @@ from pathlib import Path
 from typing import Any
 
 from stages.core.errors import GoiError
-from stages.models.export.common import check, image_stats, onnx_export, write_tokenizer
+from stages.models.export.common import (
+    check,
+    export_text_graph,
+    image_stats,
+    onnx_export,
+    write_tokenizer,
+)
 from stages.models.onnx_io import Tokens
 
 # OpenAI CLIP's preprocessing, used when the checkpoint has no preprocessor_config.json.
@@ -94,21 +100,9 @@ def text_spec(tokenizer: dict) -> dict:
 
 def export_text(module: Any, tmp: Path, tokens: Tokens, opset: int) -> dict:
     """text_encoder.onnx from a torch module (input_ids, attention_mask) -> [1, D]."""
-    import torch
-
-    ids, mask = (torch.from_numpy(a) for a in tokens.encode("a small red chair by the sofa"))
-    with torch.no_grad():
-        want = [module(ids, mask).numpy()]
     path = tmp / "text_encoder.onnx"
-    onnx_export(
-        module,
-        (ids, mask),
-        path,
-        (["input_ids", "attention_mask"], ["text_embeds"]),
-        {"input_ids": {1: "length"}, "attention_mask": {1: "length"}},
-        opset,
-    )
-    return check(path, {"input_ids": ids.numpy(), "attention_mask": mask.numpy()}, want)
+    texts = ["a small red chair by the sofa"]
+    return export_text_graph(module, tokens, path, "text_embeds", opset, texts)[1]
 
 
 def export_clip(
@@ -137,10 +131,8 @@ def export_clip(
             return out if isinstance(out, torch.Tensor) else out.pooler_output
 
     max_length = int(model.config.text_config.max_position_embeddings)
-    tok = write_tokenizer(tokenizer, tmp, "tokenizer.json", max_length)
-    checks["text_encoder.onnx"] = export_text(
-        Text().eval(), tmp, Tokens(tmp / "tokenizer.json", max_length, str(src)), opset
-    )
+    tok, tokens = write_tokenizer(tokenizer, tmp, "tokenizer.json", max_length, src)
+    checks["text_encoder.onnx"] = export_text(Text().eval(), tmp, tokens, opset)
     stats = image_stats(src, CLIP_MEAN, CLIP_STD)
     return {
         "feature_dim": int(model.config.projection_dim),

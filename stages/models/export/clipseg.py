@@ -13,8 +13,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from stages.models import res_processing as rp
-from stages.models.export.common import check, image_stats, onnx_export, write_tokenizer
+from stages.models.export.common import TEXT_AXES, export_checked, image_stats, write_tokenizer
 from stages.models.export.grounding_dino import check_image
 from stages.models.onnx_io import Tokens
 
@@ -53,25 +55,12 @@ def export_clipseg(
     model: Any, src: Path, tmp: Path, tokenizer: str, threshold: float, opset: int
 ) -> dict:
     """res.onnx and its tokenizer; returns the manifest's `res` entry and the check."""
-    import torch
-
-    max_length = int(model.config.text_config.max_position_embeddings)
-    tok = write_tokenizer(tokenizer, tmp, "res_tokenizer.json", max_length)
-    tokens = Tokens(tmp / "res_tokenizer.json", max_length, str(src))
-    # CIDAS's checkpoints list ImageNet's statistics in their preprocessor_config.json
-    stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
-    size = processor_size(stats["config"])
-    pixels = rp.square_inputs(check_image(size * 3 // 4, size), (size, size), *_ms(stats))
+    tok, tokens, stats, size, pixels = export_inputs(model, src, tmp, tokenizer, "res")
     ids, att = tokens.encode("a red chair")
     feed = {"pixel_values": pixels, "input_ids": ids, "attention_mask": att}
-    module = res_module(model)
-    args = tuple(torch.from_numpy(v) for v in feed.values())
-    with torch.no_grad():
-        want = [module(*args).numpy()]
-    path = tmp / "res.onnx"
-    axes = {"input_ids": {1: "length"}, "attention_mask": {1: "length"}}
-    onnx_export(module, args, path, (list(feed), ["probs"]), axes, opset)
-    found = check(path, feed, want)
+    _, found = export_checked(
+        res_module(model), [feed], tmp / "res.onnx", ["probs"], TEXT_AXES, opset
+    )
     spec = {
         "file": "res.onnx",
         "image_input": "pixel_values",
@@ -89,5 +78,18 @@ def export_clipseg(
     return {"res": spec, "export_checks": {"res.onnx": found}}
 
 
-def _ms(stats: dict) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    return tuple(stats["mean"]), tuple(stats["std"])
+def export_inputs(
+    model: Any, src: Path, tmp: Path, tokenizer: str, prefix: str
+) -> tuple[dict, Tokens, dict, int, np.ndarray]:
+    """What a CLIPSeg export (whole or split) starts from: the tokenizer written as
+    <prefix>_tokenizer.json (its manifest entry, and loaded), the image statistics, the input
+    size S and the check's pixels [1, 3, S, S]."""
+    max_length = int(model.config.text_config.max_position_embeddings)
+    name = f"{prefix}_tokenizer.json"
+    tok, tokens = write_tokenizer(tokenizer, tmp, name, max_length, src)
+    # CIDAS's checkpoints list ImageNet's statistics in their preprocessor_config.json
+    stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
+    size = processor_size(stats["config"])
+    mean, std = tuple(stats["mean"]), tuple(stats["std"])
+    pixels = rp.square_inputs(check_image(size * 3 // 4, size), (size, size), mean, std)
+    return tok, tokens, stats, size, pixels

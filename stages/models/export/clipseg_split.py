@@ -15,11 +15,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from stages.models import res_processing as rp
-from stages.models.export.clipseg import processor_size
-from stages.models.export.common import check, image_stats, onnx_export, write_tokenizer
-from stages.models.export.grounding_dino import check_image
-from stages.models.onnx_io import Tokens
+from stages.models.export.clipseg import export_inputs
+from stages.models.export.common import (
+    export_checked,
+    export_text_graph,
+    image_spec,
+)
 
 
 def modules(model: Any) -> tuple[Any, Any, Any]:
@@ -70,47 +71,24 @@ def export_clipseg_split(
     model: Any, src: Path, tmp: Path, tokenizer: str, threshold: float, opset: int
 ) -> dict:
     """The three graphs and the tokenizer; returns the manifest's `clipseg` entry and checks."""
-    import torch
-
-    max_length = int(model.config.text_config.max_position_embeddings)
-    tok = write_tokenizer(tokenizer, tmp, "clipseg_tokenizer.json", max_length)
-    tokens = Tokens(tmp / "clipseg_tokenizer.json", max_length, str(src))
-    stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
-    size = processor_size(stats["config"])
-    mean, std = tuple(stats["mean"]), tuple(stats["std"])
-    pixels = rp.square_inputs(check_image(size * 3 // 4, size), (size, size), mean, std)
+    tok, tokens, stats, size, pixels = export_inputs(model, src, tmp, tokenizer, "clipseg")
     image, text, decoder = modules(model)
-    with torch.no_grad():
-        acts = image(torch.from_numpy(pixels))
     paths = {k: tmp / f"clipseg_{k}.onnx" for k in ("image", "text", "decoder")}
-    onnx_export(image, (torch.from_numpy(pixels),), paths["image"],
-                (["pixel_values"], ["activations"]), {}, opset)  # fmt: skip
-    checks = {"clipseg_image.onnx": check(paths["image"], {"pixel_values": pixels}, [acts.numpy()])}
-    feeds = [tokens.encode(t) for t in ("a red chair", "the lamp")]
-    with torch.no_grad():
-        conds = [text(*map(torch.from_numpy, f)) for f in feeds]
-    axes = {"input_ids": {1: "length"}, "attention_mask": {1: "length"}}
-    onnx_export(text, tuple(map(torch.from_numpy, feeds[0])), paths["text"],
-                (["input_ids", "attention_mask"], ["conditional"]), axes, opset)  # fmt: skip
-    found = [
-        check(paths["text"], {"input_ids": f[0], "attention_mask": f[1]}, [c.numpy()])
-        for f, c in zip(feeds, conds, strict=True)
-    ]
-    checks["clipseg_text.onnx"] = {k: max(f[k] for f in found) for k in found[0]}
-    with torch.no_grad():
-        wants = [decoder(acts, c).numpy() for c in conds]
-    onnx_export(decoder, (acts, conds[0]), paths["decoder"],
-                (["activations", "conditional"], ["probs"]), {}, opset)  # fmt: skip
-    found = [
-        check(paths["decoder"], {"activations": acts.numpy(), "conditional": c.numpy()}, [w])
-        for c, w in zip(conds, wants, strict=True)
-    ]
-    checks["clipseg_decoder.onnx"] = {k: max(f[k] for f in found) for k in found[0]}
+    checks = {}
+    ((acts,),), checks["clipseg_image.onnx"] = export_checked(
+        image, [{"pixel_values": pixels}], paths["image"], ["activations"], {}, opset
+    )
+    conds, checks["clipseg_text.onnx"] = export_text_graph(
+        text, tokens, paths["text"], "conditional", opset
+    )
+    feeds = [{"activations": acts, "conditional": c} for (c,) in conds]
+    _, checks["clipseg_decoder.onnx"] = export_checked(
+        decoder, feeds, paths["decoder"], ["probs"], {}, opset
+    )
     spec = {
-        "image": {"file": "clipseg_image.onnx", "size": [size, size], "mean": stats["mean"],
-                  "std": stats["std"]},
+        "image": image_spec("clipseg_image.onnx", [size, size], stats),
         "text": {"file": "clipseg_text.onnx", "tokenizer": tok},
         "decoder": {"file": "clipseg_decoder.onnx"},
         "threshold": float(threshold),
-    }  # fmt: skip
+    }
     return {"clipseg": spec, "export_checks": checks}

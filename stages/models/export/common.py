@@ -19,6 +19,7 @@ import numpy as np
 
 from stages.core.errors import GoiError, warn
 from stages.core.files import read_json, regular_file
+from stages.models.onnx_io import Tokens
 
 TOLERANCE = 1e-4
 #: The absolute floor of the check (what goi's CLIP export always allowed).
@@ -33,7 +34,8 @@ def transformers() -> Any:
         tf.utils.logging.set_verbosity_error()
     except ImportError:
         raise GoiError(
-            "goi export-model needs the optional dependency transformers: pip install 'goi[export]'"
+            "goi export-model needs transformers, the optional extra goi[export]: "
+            "pip install 'goi[export]' (bash scripts/goi.sh export-model ... installs it)"
         ) from None
     return tf
 
@@ -337,10 +339,46 @@ def tokenizer_json(src: Path) -> str:
         ) from None
 
 
-def write_tokenizer(text: str, tmp: Path, name: str, max_length: int) -> dict:
-    """Write a tokenizer.json into the bundle; returns its manifest entry."""
+def write_tokenizer(
+    text: str, tmp: Path, name: str, max_length: int, src: Path
+) -> tuple[dict, Tokens]:
+    """Write a tokenizer.json into the bundle; returns its manifest entry and the tokenizer
+    (for the export's checks)."""
     (tmp / name).write_text(text)
-    return {"kind": "huggingface", "file": name, "max_length": int(max_length)}
+    spec = {"kind": "huggingface", "file": name, "max_length": int(max_length)}
+    return spec, Tokens(tmp / name, max_length, str(src))
+
+
+def image_spec(file: str, size: Sequence[int], stats: dict, **names: Any) -> dict:
+    """An image graph's manifest entry: its file, `names` (its inputs' and outputs' names),
+    the input size and the normalisation."""
+    return {"file": file, **names, "size": list(size), "mean": stats["mean"], "std": stats["std"]}
+
+
+#: A text graph's inputs: one prompt of any length.
+TEXT_AXES = {"input_ids": {1: "length"}, "attention_mask": {1: "length"}}
+
+
+def export_checked(
+    module: Any,
+    feeds: Sequence[dict[str, np.ndarray]],
+    path: Path,
+    outputs: Sequence[str],
+    axes: dict,
+    opset: int,
+) -> tuple[list[list[np.ndarray]], dict]:
+    """`module` exported to `path` (its inputs named and ordered as the feeds' keys, its
+    `outputs`), then run in onnxruntime against torch on every feed; returns torch's outputs
+    per feed and the largest errors over the feeds."""
+    import torch
+
+    with torch.no_grad():
+        outs = [module(*map(torch.from_numpy, f.values())) for f in feeds]
+    wants = [[t.numpy() for t in (o if isinstance(o, tuple) else (o,))] for o in outs]
+    args = tuple(map(torch.from_numpy, feeds[0].values()))
+    onnx_export(module, args, path, (list(feeds[0]), list(outputs)), axes, opset)
+    found = [check(path, f, w) for f, w in zip(feeds, wants, strict=True)]
+    return wants, {k: max(f[k] for f in found) for k in found[0]}
 
 
 def onnx_export(model: Any, args: tuple, path: Path, names: tuple, axes: dict, opset: int) -> None:
@@ -360,6 +398,22 @@ def onnx_export(model: Any, args: tuple, path: Path, names: tuple, axes: dict, o
             opset_version=opset,
             dynamo=False,
         )
+
+
+def export_text_graph(
+    module: Any,
+    tokens: Tokens,
+    path: Path,
+    output: str,
+    opset: int,
+    texts: Sequence[str] = ("a red chair", "the lamp"),
+) -> tuple[list[list[np.ndarray]], dict]:
+    """A text graph (input_ids, attention_mask [1, L], L any length -> `output`), exported and
+    checked on the `texts` (by default two of other lengths), as export_checked."""
+    feeds = [
+        dict(zip(("input_ids", "attention_mask"), tokens.encode(t), strict=True)) for t in texts
+    ]
+    return export_checked(module, feeds, path, [output], TEXT_AXES, opset)
 
 
 def run_onnx(path: Path, feed: dict[str, np.ndarray]) -> list[np.ndarray]:

@@ -30,11 +30,11 @@ import numpy as np
 from stages.models import res_processing as rp
 from stages.models.export.common import (
     check_detections,
+    image_spec,
     image_stats,
     onnx_export,
     write_tokenizer,
 )
-from stages.models.onnx_io import Tokens
 
 INPUTS = ("pixel_values", "pixel_mask", "input_ids", "attention_mask", "token_type_ids")
 OUTPUTS = ("logits", "pred_boxes")
@@ -141,8 +141,7 @@ def export_detector(
     import torch
 
     max_length = int(model.config.max_text_len)
-    tok = write_tokenizer(tokenizer, tmp, "detector_tokenizer.json", max_length)
-    tokens = Tokens(tmp / "detector_tokenizer.json", max_length, str(src))
+    tok, tokens = write_tokenizer(tokenizer, tmp, "detector_tokenizer.json", max_length, src)
     stats = image_stats(src, rp.IMAGENET_MEAN, rp.IMAGENET_STD)
     # the check's image has another aspect ratio than the canvas, so the padding is exercised
     ch, cw = canvas_hw
@@ -167,14 +166,9 @@ def export_detector(
             module, args, path, (INPUTS, OUTPUTS), {**text_axes, "logits": {2: "length"}}, opset
         )
     found = check_detections(path, feed, want)
-    spec = {
-        "file": "detector.onnx",
-        **{k: k for k in INPUTS},
-        "logits": "logits",
-        "boxes": "pred_boxes",
-        "size": [cw, ch],
-        "mean": stats["mean"],
-        "std": stats["std"],
-        "tokenizer": tok,
-    }
+    names = {k: k for k in INPUTS}
+    spec = image_spec(
+        "detector.onnx", [cw, ch], stats, **names, logits="logits", boxes="pred_boxes"
+    )
+    spec["tokenizer"] = tok
     return spec, found

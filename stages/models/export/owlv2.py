@@ -20,9 +20,14 @@ from pathlib import Path
 from typing import Any
 
 from stages.models import res_processing as rp
-from stages.models.export.common import check, image_stats, onnx_export, write_tokenizer
+from stages.models.export.common import (
+    export_checked,
+    export_text_graph,
+    image_spec,
+    image_stats,
+    write_tokenizer,
+)
 from stages.models.export.grounding_dino import check_image
-from stages.models.onnx_io import Tokens
 
 IMAGE_OUTPUTS = ("class_embeds", "logit_shift", "logit_scale", "pred_boxes", "objectness")
 #: OWLv2's processor statistics (CLIP's), when preprocessor_config.json does not say.
@@ -71,38 +76,23 @@ def modules(model: Any) -> tuple[Any, Any]:
 def export_owlv2(model: Any, src: Path, tmp: Path, tokenizer: str, opset: int) -> tuple[dict, dict]:
     """owl_image.onnx, owl_text.onnx and the tokenizer; returns the manifest's `owl` entry
     and the checks."""
-    import torch
-
     size = int(model.config.vision_config.image_size)
     max_length = int(model.config.text_config.max_position_embeddings)
-    tok = write_tokenizer(tokenizer, tmp, "owl_tokenizer.json", max_length)
-    tokens = Tokens(tmp / "owl_tokenizer.json", max_length, str(src))
+    tok, tokens = write_tokenizer(tokenizer, tmp, "owl_tokenizer.json", max_length, src)
     stats = image_stats(src, CLIP_MEAN, CLIP_STD)
     image, text = modules(model)
     pixels = rp.owl_inputs(check_image(size * 3 // 4, size), size, stats["mean"], stats["std"])
-    with torch.no_grad():
-        want = [t.numpy() for t in image(torch.from_numpy(pixels))]
-    img_path = tmp / "owl_image.onnx"
-    onnx_export(image, (torch.from_numpy(pixels),), img_path, (["pixel_values"], IMAGE_OUTPUTS),
-                {}, opset)  # fmt: skip
-    checks = {"owl_image.onnx": check(img_path, {"pixel_values": pixels}, want)}
-    feeds = [tokens.encode(t) for t in ("a red chair", "the lamp")]
-    with torch.no_grad():
-        wants = [[text(*map(torch.from_numpy, f)).numpy()] for f in feeds]
-    txt_path = tmp / "owl_text.onnx"
-    axes = {"input_ids": {1: "length"}, "attention_mask": {1: "length"}}
-    onnx_export(text, tuple(map(torch.from_numpy, feeds[0])), txt_path,
-                (["input_ids", "attention_mask"], ["query_embeds"]), axes, opset)  # fmt: skip
-    found = [
-        check(txt_path, {"input_ids": f[0], "attention_mask": f[1]}, w)
-        for f, w in zip(feeds, wants, strict=True)
-    ]
-    checks["owl_text.onnx"] = {k: max(f[k] for f in found) for k in found[0]}
+    checks = {}
+    (want,), checks["owl_image.onnx"] = export_checked(
+        image, [{"pixel_values": pixels}], tmp / "owl_image.onnx", IMAGE_OUTPUTS, {}, opset
+    )
+    _, checks["owl_text.onnx"] = export_text_graph(
+        text, tokens, tmp / "owl_text.onnx", "query_embeds", opset
+    )
     spec = {
-        "image": {"file": "owl_image.onnx", "size": [size, size], "mean": stats["mean"],
-                  "std": stats["std"]},
+        "image": image_spec("owl_image.onnx", [size, size], stats),
         "text": {"file": "owl_text.onnx", "tokenizer": tok},
         "dim": int(want[0].shape[-1]),
         "patches": int(want[0].shape[1]),
-    }  # fmt: skip
+    }
     return spec, checks

@@ -24,7 +24,7 @@ import numpy as np
 
 from stages.core.errors import GoiError
 from stages.models import res_processing as rp
-from stages.models.export.common import check, image_stats, onnx_export
+from stages.models.export.common import export_checked, image_spec, image_stats
 from stages.models.export.grounding_dino import check_image
 
 
@@ -95,30 +95,18 @@ def export_split(
     and input_boxes [1, B, 4], B dynamic -> pred_masks, iou_scores), each run in onnxruntime
     against torch on a test card (`pixels`, of an image `image_hw`) and on 2 and 1 boxes put in
     the encoder's frame by `to_frame`; returns the checks. SAM's and SAM 2's split."""
-    import torch
-
     size = int(pixels.shape[-1])
-    with torch.no_grad():
-        out = encoder(torch.from_numpy(pixels))
-    tensors = out if isinstance(out, tuple) else (out,)
-    enc_path = tmp / "sam_encoder.onnx"
-    onnx_export(encoder, (torch.from_numpy(pixels),), enc_path, (["pixel_values"], maps), {}, opset)
-    want = [t.numpy() for t in tensors]
-    checks = {"sam_encoder.onnx": check(enc_path, {"pixel_values": pixels}, want)}
+    checks = {}
+    (image_side,), checks["sam_encoder.onnx"] = export_checked(
+        encoder, [{"pixel_values": pixels}], tmp / "sam_encoder.onnx", maps, {}, opset
+    )
     boxes = np.asarray([[10, 20, 300, 240], [200, 100, 620, 470]], np.float32) * (size / 1024)
-    feeds = [to_frame(boxes[:n], image_hw, size) for n in (2, 1)]
-    with torch.no_grad():
-        wants = [[t.numpy() for t in decoder(*tensors, torch.from_numpy(b))] for b in feeds]
-    dec_path = tmp / "sam_decoder.onnx"
+    feed_maps = dict(zip(maps, image_side, strict=True))
+    feeds = [{**feed_maps, "input_boxes": to_frame(boxes[:n], image_hw, size)} for n in (2, 1)]
     axes = {"input_boxes": {1: "boxes"}, "pred_masks": {1: "boxes"}, "iou_scores": {1: "boxes"}}
-    names = ([*maps, "input_boxes"], ["pred_masks", "iou_scores"])
-    onnx_export(decoder, (*tensors, torch.from_numpy(feeds[0])), dec_path, names, axes, opset)
-    feed_maps = {name: t.numpy() for name, t in zip(maps, tensors, strict=True)}
-    found = [
-        check(dec_path, {**feed_maps, "input_boxes": b}, w)
-        for b, w in zip(feeds, wants, strict=True)
-    ]
-    checks["sam_decoder.onnx"] = {k: max(f[k] for f in found) for k in found[0]}
+    _, checks["sam_decoder.onnx"] = export_checked(
+        decoder, feeds, tmp / "sam_decoder.onnx", ["pred_masks", "iou_scores"], axes, opset
+    )
     return checks
 
 
@@ -136,14 +124,9 @@ def export_sam(model: Any, src: Path, tmp: Path, size: int, opset: int) -> tuple
     checks = export_split(
         encoder, decoder, pixels, rgb.shape[:2], rp.sam_boxes, ("image_embeddings",), tmp, opset
     )
-    enc_spec = {
-        "file": "sam_encoder.onnx",
-        "input": "pixel_values",
-        "output": "image_embeddings",
-        "size": [size, size],
-        "mean": stats["mean"],
-        "std": stats["std"],
-    }
+    enc_spec = image_spec(
+        "sam_encoder.onnx", [size, size], stats, input="pixel_values", output="image_embeddings"
+    )
     dec_spec = {
         "file": "sam_decoder.onnx",
         "image_embeddings": "image_embeddings",

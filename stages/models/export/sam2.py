@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from stages.models import res_processing as rp
-from stages.models.export.common import image_stats
+from stages.models.export.common import image_spec, image_stats
 from stages.models.export.grounding_dino import check_image
 from stages.models.export.sam import export_split
 
@@ -81,15 +81,14 @@ def export_sam2(model: Any, src: Path, tmp: Path, opset: int) -> tuple[dict, dic
     checks = export_split(
         encoder, decoder, pixels, rgb.shape[:2], rp.sam2_boxes, ENCODER_OUTPUTS, tmp, opset
     )
-    enc_spec = {
-        "file": "sam_encoder.onnx",
-        "input": "pixel_values",
-        "output": ENCODER_OUTPUTS[0],
-        "high_res": list(ENCODER_OUTPUTS[1:]),
-        "size": [size, size],
-        "mean": stats["mean"],
-        "std": stats["std"],
-    }
+    enc_spec = image_spec(
+        "sam_encoder.onnx",
+        [size, size],
+        stats,
+        input="pixel_values",
+        output=ENCODER_OUTPUTS[0],
+        high_res=list(ENCODER_OUTPUTS[1:]),
+    )
     dec_spec = {
         "file": "sam_decoder.onnx",
         "layout": "sam2",

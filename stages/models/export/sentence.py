@@ -10,7 +10,6 @@ from typing import Any
 from stages.core.errors import GoiError
 from stages.models.export.clip import export_text, text_spec
 from stages.models.export.common import checkpoint_json, write_tokenizer
-from stages.models.onnx_io import Tokens
 
 
 def pooling_mode(src: Path, modules: list) -> str:
@@ -51,8 +50,7 @@ def export_sentence(
     st = src / "sentence_bert_config.json"
     limit = int(checkpoint_json(st).get("max_seq_length", 256)) if st.is_file() else 256
     max_length = min(limit, int(model.config.max_position_embeddings))
-    tok = write_tokenizer(tokenizer, tmp, "tokenizer.json", max_length)
-    tokens = Tokens(tmp / "tokenizer.json", max_length, str(src))
+    tok, tokens = write_tokenizer(tokenizer, tmp, "tokenizer.json", max_length, src)
     checks = {"text_encoder.onnx": export_text(Sentence().eval(), tmp, tokens, opset)}
     return {
         "feature_dim": int(model.config.hidden_size),
