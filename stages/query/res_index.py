@@ -449,12 +449,13 @@ def build_res_index(
             )
     t0 = time.perf_counter()
     with IndexWriter(scene, bundle, out, report, run.wait, fresh=run.force) as w:
-        todo = [c for c in index_order(cams, w.views) if c in target and c.name not in w.views]
+        want = {c.name for c in target}
+        todo = [c for c in index_order(cams, w.views) if c.name in want and c.name not in w.views]
         copied = 0
         for c in list(todo):  # the parts' views, in the index's order
-            index = next((p for p in parts if c.name in p.views), None)
-            if index is not None:
-                w.copy_from(index, c.name)
+            part = next((p for p in parts if c.name in p.views), None)
+            if part is not None:
+                w.copy_from(part, c.name)
                 todo.remove(c)
                 copied += 1
         if copied:
