@@ -13,10 +13,10 @@ the answer still lacks evidence. The math is in `stages.query.lifting`.
 On a RES index that grows (`--res-index` with its bundle, stages.query.res.ResGrowing) the
 views the index holds are cheap and are lifted first; when the answer should rest on more
 views than it holds (at least 8 by default, --res-views K, or `all`), the rest are chosen by
-the same coverage, one at a time, and each is indexed as it is chosen, so the index grows by
-the views that serve the prompts asked. With `RefineParams.progressive` the answer is handed
-to `on_answer` once the first views are lifted and again after every further batch, so a
-caller rewrites it as it refines.
+coverage, one at a time, from sides not yet seen (`stages.query.views.next_view_apart`), and
+each is indexed as it is chosen, so the index grows by the views that serve the prompts
+asked. With `RefineParams.progressive` the answer is handed to `on_answer` once the first
+views are lifted and again after every further batch, so a caller rewrites it as it refines.
 
 Without a semantic field (`lift_prompt` given a bare Rasterizer: the field-free mode, the
 training-free route of FlashSplat and Seed2GS) the vote alone decides: a Gaussian is in when its
@@ -47,7 +47,8 @@ from stages.query.lifting import (
 )
 from stages.query.osh import Hyperplane, HyperplaneParams, fit_osh, threshold_plane
 from stages.query.res import ResFiles
-from stages.query.views import COVER, next_view, provisional
+from stages.query.res_index import camera_distance
+from stages.query.views import COVER, next_view, next_view_apart, provisional
 from stages.render.lift import lift_mask, selection_mask
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
@@ -372,8 +373,14 @@ def _lift_growing(
         step()
     names = {c.name for c in held}
     left = [c for c in train if c.name not in names]
+    dist = camera_distance(train)  # [V, V]
+    at = {c.name: i for i, c in enumerate(train)}
+    lifted = [at[c.name] for c in held]
     for _ in report.progress(range(n - len(held)), "lift", length=n - len(held)):
-        cam = left.pop(next_view([vis[c.name] for c in left], S, E, COVER))
+        idx = [at[c.name] for c in left]
+        apart = dist[np.ix_(idx, lifted)].min(1) if lifted else None
+        cam = left.pop(next_view_apart([vis[c.name] for c in left], S, E, apart))
+        lifted.append(at[cam.name])
         evidence.append(view_evidence(rast, cam, source.mask(cam)))  # indexes it
         E += vis[cam.name]
         answer = _answer(list(evidence), field, entry, prompt, text, hp, lp, chosen_by)

@@ -95,20 +95,14 @@ class ResIndexRun:
 
 def index_order(cams: list[Camera], held: Iterable[str] = ()) -> list[Camera]:
     """The views in the order an index is filled when no prompt guides the choice: the ones it
-    holds (in `held`'s order), then farthest-point sampling on the camera poses, so that any
-    prefix sees the scene from as many sides as that many views can. The distance of two views
-    is the distance of their centres, in units of the cameras' spread (the median distance to
-    their mean), plus 1 - cos of the angle between their viewing directions; the next view is
-    the one farthest from every view taken. With nothing held the first is the medoid (the
-    view nearest to all others), so the order does not depend on how the views are named."""
+    holds (in `held`'s order), then farthest-point sampling on the camera poses
+    (`camera_distance`), so that any prefix sees the scene from as many sides as that many
+    views can: the next view is the one farthest from every view taken. With nothing held the
+    first is the medoid (the view nearest to all others), so the order does not depend on how
+    the views are named."""
     if not cams:
         return []
-    C = np.array([c.center for c in cams], np.float64)  # [V, 3]
-    D = np.array([c.R[2] for c in cams], np.float64)  # [V, 3] optical axes, world frame
-    D /= np.maximum(np.linalg.norm(D, axis=1, keepdims=True), 1e-12)
-    spread = float(np.median(np.linalg.norm(C - C.mean(0), axis=1)))
-    dist = np.linalg.norm(C[:, None] - C[None], axis=2) / (spread if spread > 0 else 1.0)
-    dist += np.clip(1.0 - D @ D.T, 0.0, 2.0)  # [V, V]
+    dist = camera_distance(cams)  # [V, V]
     index = {c.name: i for i, c in enumerate(cams)}
     order = list(dict.fromkeys(index[v] for v in held if v in index))
     if not order:
@@ -122,6 +116,16 @@ def index_order(cams: list[Camera], held: Iterable[str] = ()) -> list[Camera]:
         taken[j] = True
         nearest = np.minimum(nearest, dist[j])
     return [cams[i] for i in order]
+
+
+def camera_distance(cams: list[Camera]) -> np.ndarray:
+    """[V, V] the cameras' pose distance (stages.query.views.pose_distance)."""
+    from stages.query.views import pose_distance
+
+    centers = np.array([c.center for c in cams], np.float64)  # [V, 3]
+    axes = np.array([c.R[2] for c in cams], np.float64)  # [V, 3] optical axes, world frame
+    axes /= np.maximum(np.linalg.norm(axes, axis=1, keepdims=True), 1e-12)
+    return pose_distance(centers, axes)
 
 
 def image_digests(scene: Scene, cams: list[Camera]) -> dict[str, str]:
