@@ -167,18 +167,29 @@ def inspect_cmd(files: tuple[str, ...]) -> None:
 @click.command("index-res", short_help="Index a scene's training photos for a bundle's RES.")
 @scene_options
 @dataclass_options(ResIndexRun)
-def index_res_cmd(**kw) -> None:
+@click.option(
+    "--merge",
+    multiple=True,
+    type=EXISTING,
+    help="An index of some of the views (--part) made with the same bundle from the same "
+    "photos: its views are copied, not computed (repeatable).",
+)
+def index_res_cmd(merge: tuple[Path, ...], **kw) -> None:
     """Index the scene for prompts: run the bundle's RES image side (SAM's or SAM 2's image
     encoder, OWLv2's vision tower, CLIPSeg's visual activations) once on every training photo
     and write it (schema goi.res_index). Then goi query, select, render-mask, fit-hyperplane,
     eval and demo with `--res-index FILE --bundle B` run only the prompt side: a new prompt
-    costs a text encoding and a small decoder per view. An interrupted run resumes from
-    <out>.partial.
+    costs a text encoding and a small decoder per view.
+
+    The views are indexed in an order where any prefix sees the scene from many sides
+    (camera-pose farthest-point sampling, after the views the index holds), and each is kept
+    as it is done: an index that a lifted query started, or one cut off, is filled in; an
+    interrupted run resumes from <out>.partial. A line per view says the time left.
     """
     from stages.query.res_index import build_res_index
 
     scene = load_scene_from(kw)
-    out = build_res_index(scene, build(ResIndexRun, kw), TERMINAL)
+    out = build_res_index(scene, build(ResIndexRun, kw), TERMINAL, list(merge))
     click.echo(f"RES index: {out}")
 
 

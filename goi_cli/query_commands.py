@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import click
@@ -19,6 +20,7 @@ from goi_cli.report import TERMINAL
 from stages.core.staging import staged_outputs
 from stages.query.export_ply import PlyEditParams, PlyExportRun
 from stages.query.hyperplanes import HyperplaneRun
+from stages.query.lifted import RefineParams
 from stages.query.lifting import LiftParams
 from stages.query.masks import MaskParams, MaskRun
 from stages.query.osh import HyperplaneParams
@@ -47,7 +49,57 @@ plane_or_lift_option = click.option(
 )
 #: Where the prompt's embedding and RES masks come from: the fields of PromptSources.
 source_options = dataclass_options(PromptSources)
-lift_options = dataclass_options(LiftParams)
+
+
+class ResViews(click.ParamType):
+    """--res-views: a number of views (at least 1) or `all`."""
+
+    name = "K|all"
+
+    def convert(self, value, param, ctx):  # noqa: ANN001, ANN201
+        if isinstance(value, int) or value == "all":
+            return value
+        text = str(value).strip().lower()
+        if text == "all":
+            return "all"
+        try:
+            k = int(text)
+        except ValueError:
+            self.fail(f"{value!r} is not a number of views nor 'all'", param, ctx)
+        if k < 1:
+            self.fail(f"{k} is below 1 (it must be >= 1, or all)", param, ctx)
+        return k
+
+
+#: The lifted mode's options: LiftParams and RefineParams, with --res-views taking `all` too.
+lift_options = stack(
+    dataclass_options(LiftParams, skip=("res_views",)),
+    click.option(
+        "--res-views",
+        "res_views",
+        type=ResViews(),
+        default=None,
+        help="With --lift: how many views' RES masks to lift, K or all. Default: every mask "
+        "file of the prompt (--res-masks); with --res-index every view the index holds, and "
+        "at least 8: views it lacks are indexed, chosen to cover the selection (with "
+        "--progressive: all views); or 8 views chosen to cover the provisional selection when "
+        "a RES model runs.",
+    ),
+    dataclass_options(RefineParams, skip=("all_views",)),
+)
+
+
+def build_lift(kw: dict) -> tuple[LiftParams, RefineParams]:
+    """The lifted mode's options from the parsed keyword arguments (removing them)."""
+    views = kw.pop("res_views", None)
+    lp, refine = build(LiftParams, kw), build(RefineParams, kw)
+    if views == "all":
+        refine.all_views = True
+    else:
+        lp.res_views = views
+    return lp, refine
+
+
 #: render-mask / select: the scene and one prompt's answer, from a plane or lifted.
 answer_options = stack(
     scene_options,
@@ -59,37 +111,69 @@ answer_options = stack(
 )
 
 
-def _lifted_answer(scene, field: Path | None, prompt: str, kw: dict, need_positive: bool = False):  # noqa: ANN001, ANN202, E501
+def _lifted_answer(  # noqa: ANN202
+    scene,  # noqa: ANN001
+    field: Path | None,
+    prompt: str,
+    kw: dict,
+    need_positive: bool = False,
+    on_answer: Callable | None = None,
+    progressive: bool = False,
+):
     """The lifted answer of a prompt for select / render-mask / fit-hyperplane --lift, and the
-    rasterizer it was made with; field None is the field-free lifted mode."""
+    rasterizer it was made with; field None is the field-free lifted mode. A --res-index may
+    grow (the views indexed are kept when the answer is made, however it ends); with
+    --progressive (`progressive`: the command rewrites its output) `on_answer` gets each
+    answer before the last."""
+    from stages.core.errors import GoiError
     from stages.query.lifted_query import answer_prompt
-    from stages.query.pipeline import check_field_free
+    from stages.query.pipeline import check_field_free, check_refine, open_growing
     from stages.query.prompts import check_prompt, text_embedding
     from stages.query.res import res_source
     from stages.render.rasterizer import Rasterizer
     from stages.semantics.decode import SemanticRenderer
     from stages.semantics.field import load_field_for
 
-    src, lp = build(PromptSources, kw), build(LiftParams, kw)
+    src = build(PromptSources, kw)
+    lp, refine = build_lift(kw)
     hp = build(HyperplaneParams, kw) if "loss" in kw else HyperplaneParams()
     lp.check(hp)
+    check_refine(refine, lp, src)
+    if refine.progressive and not progressive:
+        raise GoiError(
+            "--progressive: only goi query and goi select rewrite their answer as it refines"
+        )
     prompt = check_prompt(prompt)
+    text = None
+    renderer: Rasterizer | SemanticRenderer
     if field is None:
         check_field_free(lp, src)
-        rast = Rasterizer.from_gaussians(scene.gaussians)
+        renderer = rast = Rasterizer.from_gaussians(scene.gaussians)
+    else:
+        f = load_field_for(field, scene.ply_digest())
+        text, _ = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
+        renderer = SemanticRenderer(scene.gaussians, f)
+        rast = renderer.rast
+    grow = open_growing(src, scene, refine, TERMINAL)
+    try:
         masks = res_source(
-            src.res_masks, src.bundle, src.prompt_id, prompt, rast, src.res_index, scene
+            src.res_masks, src.bundle, src.prompt_id, prompt, rast, src.res_index, scene, grow
         )
-        ans = answer_prompt(scene, rast, prompt, None, masks, hp, lp, TERMINAL, need_positive)
-        return ans, rast, lp
-    f = load_field_for(field, scene.ply_digest())
-    text, _ = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
-    renderer = SemanticRenderer(scene.gaussians, f)
-    masks = res_source(
-        src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast, src.res_index, scene
-    )
-    ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, TERMINAL, need_positive)
-    return ans, renderer.rast, lp
+        ans = answer_prompt(
+            scene, renderer, prompt, text, masks, hp, lp, TERMINAL, need_positive,
+            refine=refine, on_answer=on_answer if refine.progressive else None,
+        )  # fmt: skip
+    finally:
+        if grow is not None:
+            grow.close()
+    return ans, rast, lp
+
+
+def _not_lifted(kw: dict) -> None:
+    """Without --lift: the lifted mode's options are refused (LiftParams.check)."""
+    lp, refine = build_lift(kw)
+    lp.check()
+    refine.check(lp.lift)
 
 
 def _need_field(field: Path | None) -> Path:
@@ -161,7 +245,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
             f"entries positive): {run.out}"
         )
         return
-    build(LiftParams, kw).check()
+    _not_lifted(kw)
     src = build(PromptSources, kw)
     p, run = build(HyperplaneParams, kw), build(HyperplaneRun, kw)
     prompt = check_prompt(prompt)
@@ -226,7 +310,7 @@ def render_mask_cmd(
         click.echo(f"masks ({len(written)} views, lifted from {len(ans.views)} views): {run.out}")
         return
     build(PromptSources, kw)
-    build(LiftParams, kw).check()
+    _not_lifted(kw)
     field = _need_field(field)
     f = load_field_for(field, scene.ply_digest())
     n_entries, dim = f.codebook.shape
@@ -274,15 +358,25 @@ def select_cmd(
     if kw["lift"]:
         from stages.query.lifted_query import write_lifted_selection
 
-        ans, _, lp = _lifted_answer(scene, field, prompt, kw)
-        write_lifted_selection(out, ans, scene, field, lp, force, prompt)
+        written = [False]
+
+        recorded, _ = build_lift(dict(kw))  # the lifted options, as the answer records them
+
+        def rewrite(a, done: int, total: int) -> None:  # noqa: ANN001
+            # --progressive: the selection as it refines, replaced atomically each time
+            write_lifted_selection(out, a, scene, field, recorded, force or written[0], prompt)
+            written[0] = True
+            click.echo(f"selection ({done} of {total} views, refining): {out}", err=True)
+
+        ans, _, lp = _lifted_answer(scene, field, prompt, kw, on_answer=rewrite, progressive=True)
+        write_lifted_selection(out, ans, scene, field, lp, force or written[0], prompt)
         click.echo(
             f"selection (lifted from {len(ans.views)} views, {int(ans.selected.sum())} of "
             f"{ans.selected.size} Gaussians): {out}"
         )
         return
     build(PromptSources, kw)
-    build(LiftParams, kw).check()
+    _not_lifted(kw)
     hyperplanes = _need_plane(hyperplanes)
     field = _need_field(field)
     f = load_field_for(field, scene.ply_digest())
@@ -335,9 +429,9 @@ def query_cmd(field: Path | None, prompt: str, **kw) -> None:
     scene = load_scene_from(kw)
     src = build(PromptSources, kw)
     hp, qp, run = build(HyperplaneParams, kw), build(QueryParams, kw), build(QueryRun, kw)
-    lp = build(LiftParams, kw)
+    lp, refine = build_lift(kw)
     with staged_outputs():  # masks, selection, PLY and the plane appear together, or not at all
-        r = run_query(scene, field, prompt, src, hp, qp, run, report=TERMINAL, lp=lp)
+        r = run_query(scene, field, prompt, src, hp, qp, run, report=TERMINAL, lp=lp, refine=refine)
     click.echo(f"prompt:     {r.prompt}")
     if lp.lift:
         click.echo(f"lifted:     {len(r.info['views'])} views ({r.info['chosen_by']})")

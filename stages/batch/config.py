@@ -243,10 +243,19 @@ class SceneJob:
     #: (extract); the text embeddings, the bundle's manifest, a given RES index (query)
     extract_inputs: list[str] = field(default_factory=list)
     query_inputs: list[str] = field(default_factory=list)
+    #: the index built as this many goi index-res jobs (parts), then merged
+    index_parts: int = 1
 
     @property
     def fitted(self) -> bool:
         return self.extract_args is not None
+
+    @property
+    def index_jobs(self) -> int:
+        """Jobs that build the index: one, or the parts and the merge."""
+        if not self.index_bundle:
+            return 0
+        return 1 if self.index_parts == 1 else self.index_parts + 1
 
 
 @dataclass
@@ -269,6 +278,9 @@ class Batch:
                     "extract_args": s.extract_args or [],
                     "query_args": s.query_args,
                     "index_bundle": s.index_bundle,
+                    "index_parts": s.index_parts,
+                    # each part's onnxruntime threads: this machine's cores shared out
+                    "index_threads": max(1, (os.cpu_count() or 1) // s.index_parts),
                     "options": s.options,
                     "prompts": {
                         p.key: {"text": p.text, "id": p.id, "masks": p.masks} for p in s.prompts
@@ -425,7 +437,15 @@ def _scene(
                 scene.image_path(cam)  # raises, naming a photo that is not there
         except GoiError as e:
             raise c.fail(where("res_index"), f"{key}.res_index", f"cannot be built: {e}") from None
-    elif isinstance(res_index, str):
+    index_parts = get("index_jobs")
+    if index_parts is not None:
+        if index_bundle is None:
+            raise c.fail(where("index_jobs"), f"{key}.index_jobs", "is given but 'res_index' is "
+                         "not true (goi batch builds no index to split)")  # fmt: skip
+        if not isinstance(index_parts, int) or not 1 <= index_parts <= 256:
+            raise c.fail(where("index_jobs"), f"{key}.index_jobs", "should be a whole number "
+                         "from 1 to 256")  # fmt: skip
+    if isinstance(res_index, str):
         index = exists("res_index")
         assert index is not None
         try:  # the query's own check: this scene's views and images, this bundle
@@ -518,7 +538,7 @@ def _scene(
         literal("res_masks", prompt.masks)
     return SceneJob(
         name, node.line, scene_args, inputs, extract_args, query_args, index_bundle, options,
-        option_values, prompts, extract_inputs, query_inputs,
+        option_values, prompts, extract_inputs, query_inputs, index_parts or 1,
     )  # fmt: skip
 
 

@@ -244,9 +244,7 @@ def _run(
     if run.keep_going:
         cmd.append("--keep-going")
     cmd += extra
-    n_jobs = sum(
-        len(s.prompts) + (3 if s.fitted else 0) + bool(s.index_bundle) for s in batch.scenes
-    )
+    n_jobs = sum(len(s.prompts) + (3 if s.fitted else 0) + s.index_jobs for s in batch.scenes)
     n_prompts = sum(len(s.prompts) for s in batch.scenes)
     report.log(
         f"{_count(len(batch.scenes), 'scene')}, {_count(n_prompts, 'prompt')} "

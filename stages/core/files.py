@@ -375,6 +375,10 @@ def finish_partial(path: Path, dest: Path) -> None:
     os.replace(path, dest)
 
 
+class OutputBusy(GoiError):
+    """`output_lock` found the output being written by another goi run (a caller may wait)."""
+
+
 @contextlib.contextmanager
 def output_lock(path: str | os.PathLike[str], option: str) -> Iterator[None]:
     """Hold `<path>.lock` while a command writes `path` (and its partial file): a second run
@@ -404,7 +408,7 @@ def output_lock(path: str | os.PathLike[str], option: str) -> Iterator[None]:
         except OSError:
             other = os.read(fd, 64).decode("ascii", "replace").strip() or "?"
             os.close(fd)
-            raise GoiError(
+            raise OutputBusy(
                 f"{option}: {path} is being written by another goi run (pid {other}); wait "
                 "for it to end, or choose another path"
             ) from None

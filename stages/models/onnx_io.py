@@ -33,6 +33,16 @@ def inside(root: Path, rel: str, where: str) -> Path:
     return p
 
 
+#: onnxruntime's intra-op threads for the sessions opened from now on (None: its default, one
+#: per core). Several processes on one machine each set fewer (`goi index-res --threads`).
+_THREADS: list[int | None] = [None]
+
+
+def set_threads(n: int | None) -> None:
+    """Threads of each onnxruntime session opened from now on (None: onnxruntime's default)."""
+    _THREADS[0] = n
+
+
 def session(path: Path, low_memory: bool = False) -> Session:
     """An onnxruntime session. `low_memory` turns off the CPU memory arena and the
     memory-pattern planner: the large RES graphs (SAM's ViT encoder, Grounding DINO) otherwise
@@ -44,6 +54,9 @@ def session(path: Path, low_memory: bool = False) -> Session:
     ort.set_default_logger_severity(4)
     opts = ort.SessionOptions()
     opts.log_severity_level = 4
+    if _THREADS[0] is not None:
+        opts.intra_op_num_threads = _THREADS[0]
+        opts.inter_op_num_threads = 1
     if low_memory:
         opts.enable_cpu_mem_arena = False
         opts.enable_mem_pattern = False

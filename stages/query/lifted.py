@@ -10,6 +10,14 @@ per-view RES errors), or K of them with --res-views K; when a RES model has to r
 (`stages.query.views`), and the selection is updated after each, so the next view looks where
 the answer still lacks evidence. The math is in `stages.query.lifting`.
 
+On a RES index that grows (`--res-index` with its bundle, stages.query.res.ResGrowing) the
+views the index holds are cheap and are lifted first; when the answer should rest on more
+views than it holds (at least 8 by default, --res-views K, or `all`), the rest are chosen by
+coverage, one at a time, from sides not yet seen (`stages.query.views.next_view_apart`), and
+each is indexed as it is chosen, so the index grows by the views that serve the prompts
+asked. With `RefineParams.progressive` the answer is handed to `on_answer` once the first
+views are lifted and again after every further batch, so a caller rewrites it as it refines.
+
 Without a semantic field (`lift_prompt` given a bare Rasterizer: the field-free mode, the
 training-free route of FlashSplat and Seed2GS) the vote alone decides: a Gaussian is in when its
 own evidence says so, and one with less than `min_evidence` (which no view's evidence reaches)
@@ -22,12 +30,12 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Annotated, Protocol
 
 import numpy as np
 
 from stages.core.errors import GoiError, warn
-from stages.core.params import check_params
+from stages.core.params import AT_LEAST_1, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.query.lifting import (
     DEFAULT_MODEL_VIEWS,
@@ -39,7 +47,8 @@ from stages.query.lifting import (
 )
 from stages.query.osh import Hyperplane, HyperplaneParams, fit_osh, threshold_plane
 from stages.query.res import ResFiles
-from stages.query.views import COVER, next_view, provisional
+from stages.query.res_index import camera_distance
+from stages.query.views import COVER, next_view, next_view_apart, provisional
 from stages.render.lift import lift_mask, selection_mask
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
@@ -48,6 +57,33 @@ from stages.semantics.field import Field
 
 #: partial(make, views done, views in all): see lift_prompt.
 Partial = Callable[[Callable[[], "LiftedAnswer"], int, int], None]
+#: on_answer(answer, views it rests on, views it refines to): see lift_prompt.
+OnAnswer = Callable[["LiftedAnswer", int, int], object]
+
+
+@dataclass
+class RefineParams:
+    """A lifted query on a RES index that grows (--res-index): whether the answer is written
+    as it refines."""
+
+    progressive: bool = False
+    """With --lift and --res-index: write the answer once the first views are lifted (the
+    ones the index holds, at least --refine-every) and rewrite it, atomically and recording
+    how many views it rests on, after each further --refine-every views are indexed, until
+    --res-views (default with --progressive: every training view)."""
+    refine_every: Annotated[int, AT_LEAST_1] = DEFAULT_MODEL_VIEWS
+    """With --progressive: views indexed before the first answer, and between two answers."""
+    index_wait: Annotated[float, Range(ge=0, le=86_400)] = 600.0
+    """With --res-index: seconds to wait while another goi process adds views to the same
+    index before giving up (0: refuse at once)."""
+    all_views: bool = False  # --res-views all: every training view (set by the CLI's option)
+
+    def check(self, lift: bool) -> None:
+        if not lift:
+            if self.progressive:
+                raise GoiError("--progressive: only with --lift (an option of the lifted mode)")
+            if self.all_views:
+                raise GoiError("--res-views: only with --lift (an option of the lifted mode)")
 
 
 class MaskSource(Protocol):
@@ -69,6 +105,7 @@ class LiftedAnswer:
     plane: Hyperplane | None  # the OSH fitted on the lifted evidence (None without a field)
     evidence: list[ViewEvidence]
     chosen_by: str  # "all mask files", "K of the mask files", "coverage (RES model)"
+    refines_to: int | None = None  # on an index that grows: the views the answer refines to
 
     @property
     def selected(self) -> np.ndarray:
@@ -94,6 +131,17 @@ class LiftedAnswer:
             "n_selected_by_masks": int((lf.selected & lf.evident).sum()),
             "n_selected_by_semantics": int((lf.selected & ~lf.evident).sum()),
             "fusion": lf.info,
+            **(
+                {
+                    "refinement": {
+                        "n_views": len(self.evidence),
+                        "of": self.refines_to,
+                        "final": len(self.evidence) >= self.refines_to,
+                    }
+                }
+                if self.refines_to is not None
+                else {}
+            ),
         }
 
 
@@ -165,13 +213,19 @@ def lift_prompt(
     visibility: Callable[[Camera], np.ndarray] | None = None,
     report: Report = SILENT,
     partial: Partial | None = None,
+    refine: RefineParams | None = None,
+    on_answer: OnAnswer | None = None,
 ) -> LiftedAnswer:
     """The lifted answer of one prompt (see the module doc). A bare Rasterizer (and text None)
     gives the field-free answer. `visibility` may give a cached view_visibility (the eval shares
     it between prompts). `partial(make, done, total)` is called after each view is lifted;
     `make()` gives the answer of the views so far (a vote: the caller decides when it is worth
-    it; `goi view` shows the answer refining)."""
+    it; `goi view` shows the answer refining). On an index that grows, with
+    `refine.progressive`, `on_answer(answer, done, total)` gets each answer worth writing
+    before the last (which is returned)."""
     check_params(lp)
+    refine = refine or RefineParams()
+    check_params(refine)
     if isinstance(renderer, Rasterizer):
         rast, field = renderer, None
     else:
@@ -182,8 +236,9 @@ def lift_prompt(
         raise GoiError(
             f"--res-views: {lp.res_views} is more than the scene's {len(train)} training views"
         )
+    grows = getattr(source, "grows", False)  # a RES index that grows (ResGrowing)
     pool = source.available(train)
-    if not pool:
+    if not pool and not grows:
         raise GoiError(
             f"--res-masks: {source.source} holds masks for none of the {len(train)} training "
             f"views (e.g. {train[0].name}.png): do the masks belong to this scene?"
@@ -198,6 +253,21 @@ def lift_prompt(
         assert isinstance(renderer, SemanticRenderer)
         entry = renderer.decode(field.features)
     files = isinstance(source, ResFiles)
+    if grows:
+        if lp.res_views is not None:
+            n = lp.res_views
+        elif refine.all_views or refine.progressive:
+            n = len(train)
+        else:
+            n = max(len(pool), min(DEFAULT_MODEL_VIEWS, len(train)))
+        if n > len(pool):
+            vis_of = visibility or (lambda c: view_visibility(rast, c))
+            grown = _lift_growing(
+                rast, field, entry, source, train, pool, prompt, text, hp, lp, n, refine,
+                vis_of, report, partial, on_answer,
+            )  # fmt: skip
+            return _found_nothing(grown, source, prompt)
+        # the index holds enough views: answered from them as from any index
     if source.every_view and lp.res_views is None:
         evidence: list[ViewEvidence] = []
         for c in report.progress(pool, "lift", show=_name):
@@ -208,19 +278,13 @@ def lift_prompt(
         everything = "all mask files" if files else f"every indexed view ({source.source})"
         lifted_all = _answer(evidence, field, entry, prompt, text, hp, lp, everything)
         return _found_nothing(lifted_all, source, prompt)
-    k = lp.res_views or DEFAULT_MODEL_VIEWS
+    k = lp.res_views or (len(pool) if refine.all_views else DEFAULT_MODEL_VIEWS)
     if k > len(pool):
         warn(f"--res-views {k}: only {len(pool)} views have RES masks; lifting all of them")
         k = len(pool)
     vis_of = visibility or (lambda c: view_visibility(rast, c))
     vis = [vis_of(c) for c in report.progress(pool, "visibility", show=_name)]
-    if field is None or text is None:
-        # nothing to aim at before the first mask: the first view is the one that covers the
-        # most of the scene, then the views cover the selection the masks build up
-        S = np.ones(entry.shape, bool)
-    else:
-        unit = field.unit_codebook().astype(np.float64)
-        S = provisional(unit @ text.astype(np.float64) - hp.threshold, entry, field.seen)
+    S = _start(field, entry, text, hp)
     E = np.zeros(entry.shape[0])
     left = list(range(len(pool)))
     chosen: list[ViewEvidence] = []
@@ -240,14 +304,109 @@ def lift_prompt(
     return _found_nothing(answer, source, prompt)
 
 
-def _given(answer: LiftedAnswer) -> LiftedAnswer:
+def _start(
+    field: Field | None, entry: np.ndarray, text: np.ndarray | None, hp: HyperplaneParams
+) -> np.ndarray:
+    """[G] bool: what the coverage aims at before any mask: the field's fixed-threshold
+    answer; without a field nothing, so the first view is the one that covers the most of
+    the scene, then the views cover the selection the masks build up."""
+    if field is None or text is None:
+        return np.ones(entry.shape, bool)
+    unit = field.unit_codebook().astype(np.float64)
+    return provisional(unit @ text.astype(np.float64) - hp.threshold, entry, field.seen)
+
+
+def _lift_growing(
+    rast: Rasterizer,
+    field: Field | None,
+    entry: np.ndarray,
+    source: MaskSource,
+    train: list[Camera],
+    held: list[Camera],
+    prompt: str,
+    text: np.ndarray | None,
+    hp: HyperplaneParams,
+    lp: LiftParams,
+    n: int,
+    refine: RefineParams,
+    visibility: Callable[[Camera], np.ndarray],
+    report: Report,
+    partial: Partial | None,
+    on_answer: OnAnswer | None,
+) -> LiftedAnswer:
+    """The answer on `n` views of an index that holds fewer (`held`): those first, then the
+    views that best cover the selection, one at a time, each indexed as it is chosen (see the
+    module doc). The first answer worth writing rests on the held views or
+    `refine.refine_every` views, whichever are more; then one every `refine.refine_every`."""
+    first = min(n, max(len(held), refine.refine_every)) if refine.progressive else n
+    plan = getattr(source, "plan", None)
+    if plan is not None:
+        plan(n - len(held))
+    added = f"{n - len(held)} indexed for it"
+    chosen_by = (
+        f"the {len(held)} indexed views, then coverage ({added})" if held
+        else f"coverage (RES index, {added})"
+    )  # fmt: skip
+    evidence: list[ViewEvidence] = []
+    E = np.zeros(entry.shape[0])
+    answer = None
+
+    def step() -> None:
+        done = len(evidence)
+        if partial is not None:
+            partial(functools.partial(_given, answer), done, n)
+        due = first <= done < n and (done - first) % refine.refine_every == 0
+        if on_answer is not None and due:
+            assert answer is not None
+            on_answer(_found_nothing(answer, source, prompt, quiet=True), done, n)
+
+    vis = {c.name: visibility(c) for c in report.progress(train, "visibility", show=_name)}
+    S = _start(field, entry, text, hp)
+    for c in report.progress(held, "lift", show=_name):
+        evidence.append(view_evidence(rast, c, source.mask(c)))
+        E += vis[c.name]
+    if held:
+        answer = _answer(list(evidence), field, entry, prompt, text, hp, lp, chosen_by)
+        answer.refines_to = n
+        if answer.selected.any():
+            S = answer.selected
+        step()
+    names = {c.name for c in held}
+    left = [c for c in train if c.name not in names]
+    dist = camera_distance(train)  # [V, V]
+    at = {c.name: i for i, c in enumerate(train)}
+    lifted = [at[c.name] for c in held]
+    for _ in report.progress(range(n - len(held)), "lift", length=n - len(held)):
+        idx = [at[c.name] for c in left]
+        apart = dist[np.ix_(idx, lifted)].min(1) if lifted else None
+        cam = left.pop(next_view_apart([vis[c.name] for c in left], S, E, apart))
+        lifted.append(at[cam.name])
+        evidence.append(view_evidence(rast, cam, source.mask(cam)))  # indexes it
+        E += vis[cam.name]
+        answer = _answer(list(evidence), field, entry, prompt, text, hp, lp, chosen_by)
+        answer.refines_to = n
+        if answer.selected.any():
+            S = answer.selected
+        step()
+    assert answer is not None  # n > len(held) >= 0
     return answer
 
 
-def _found_nothing(answer: LiftedAnswer, source: MaskSource, prompt: str) -> LiftedAnswer:
+def _given(answer: LiftedAnswer | None) -> LiftedAnswer:
+    assert answer is not None
+    return answer
+
+
+def _found_nothing(
+    answer: LiftedAnswer, source: MaskSource, prompt: str, quiet: bool = False
+) -> LiftedAnswer:
     """When every view's RES mask is empty (the detector found nothing anywhere), the answer is
-    empty, with a warning: not an error, and not the field's guess from the text alone."""
+    empty, with a warning (`quiet`: none, for an answer still refining): not an error, and not
+    the field's guess from the text alone."""
     if any(not e.empty for e in answer.evidence):
+        return answer
+    if quiet:
+        answer.lifted.selected = np.zeros_like(answer.lifted.selected)
         return answer
     warn(
         f"{source.source}: the RES found nothing for '{prompt}' on any of the "

@@ -15,7 +15,15 @@ from stages.core.artifacts import input_digest, write_png
 from stages.core.errors import GoiError, GoiWarning
 from stages.core.files import make_dir
 from stages.core.report import SILENT, Report
-from stages.query.lifted import LiftedAnswer, MaskSource, Partial, lift_prompt, lifted_masks
+from stages.query.lifted import (
+    LiftedAnswer,
+    MaskSource,
+    OnAnswer,
+    Partial,
+    RefineParams,
+    lift_prompt,
+    lifted_masks,
+)
 from stages.query.lifting import LiftParams
 from stages.query.masks import overlay
 from stages.query.osh import HyperplaneParams
@@ -38,9 +46,11 @@ def answer_prompt(
     report: Report = SILENT,
     need_positive: bool = False,
     partial: Partial | None = None,
+    refine: RefineParams | None = None,
+    on_answer: OnAnswer | None = None,
 ) -> LiftedAnswer:
     """The lifted answer; with `need_positive` (a plane is to be stored from it) refused when
-    no lifted mask has a positive pixel. `partial`: see lift_prompt."""
+    no lifted mask has a positive pixel. `partial`, `refine`, `on_answer`: see lift_prompt."""
     with warnings.catch_warnings():
         if need_positive:  # an empty answer is refused below: its warning would say it twice
             warnings.simplefilter("ignore", GoiWarning)
@@ -54,6 +64,8 @@ def answer_prompt(
             lp,
             report=report,
             partial=partial,
+            refine=refine,
+            on_answer=on_answer,
         )
     if need_positive:
         require_positive_evidence(ans, source.source)

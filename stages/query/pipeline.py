@@ -21,6 +21,7 @@ from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, res_masks_dir, wrote_res_masks
+from stages.query.lifted import LiftedAnswer, RefineParams
 from stages.query.lifting import LiftParams
 from stages.query.masks import (
     MODES,
@@ -138,13 +139,17 @@ def run_query(
     renderer: SemanticRenderer | None = None,
     report: Report = SILENT,
     lp: LiftParams | None = None,
+    refine: RefineParams | None = None,
 ) -> QueryResult:
-    """The query of one prompt. field_path None (with --lift) is the field-free lifted mode."""
+    """The query of one prompt. field_path None (with --lift) is the field-free lifted mode.
+    `refine`: on a RES index that grows, how the answer refines (stages.query.lifted)."""
     prompt = check_prompt(prompt)
     lp = lp or LiftParams()
-    for params in (hp, qp, run, lp):
+    refine = refine or RefineParams()
+    for params in (hp, qp, run, lp, refine):
         check_params(params)
     lp.check(hp)
+    check_refine(refine, lp, sources)
     if field_path is None and renderer is None:
         check_field_free(lp, sources)
         rast = Rasterizer.from_gaussians(scene.gaussians)
@@ -153,7 +158,9 @@ def run_query(
             parse_color(run.color, "--color")
         _check_outputs(scene, None, prompt, sources, run, cams)
         make_dir(run.out, "--out")
-        return _run_lifted(scene, None, prompt, None, sources, hp, lp, run, cams, rast, report)
+        return _run_lifted(
+            scene, None, prompt, None, sources, hp, lp, run, cams, rast, report, refine
+        )
     assert field_path is not None
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
@@ -167,7 +174,7 @@ def run_query(
     out = make_dir(run.out, "--out")
     if lp.lift:
         return _run_lifted(
-            scene, field_path, prompt, text, sources, hp, lp, run, cams, renderer, report
+            scene, field_path, prompt, text, sources, hp, lp, run, cams, renderer, report, refine
         )
     res_dir = None
     if qp.mode == "hyperplane":
@@ -259,6 +266,25 @@ def check_field_free(lp: LiftParams, sources: PromptSources) -> None:
         )
 
 
+def check_refine(refine: RefineParams, lp: LiftParams, sources: PromptSources) -> None:
+    """--progressive (and --res-views all) only where they mean something."""
+    refine.check(lp.lift)
+    if refine.progressive and sources.res_index is None:
+        raise GoiError(
+            "--progressive: only with --res-index FILE (the answer refines as the views it "
+            "rests on are indexed)"
+        )
+
+
+def open_growing(sources: PromptSources, scene: Scene, refine: RefineParams, report: Report):  # noqa: ANN201
+    """The lifted route's RES index, which grows (None without --res-index)."""
+    if sources.res_index is None or sources.res_masks is not None:
+        return None
+    from stages.query.res import growing_index
+
+    return growing_index(sources.res_index, sources.bundle, scene, report, refine.index_wait)
+
+
 def _run_lifted(
     scene: Scene,
     field_path: Path | None,
@@ -271,24 +297,54 @@ def _run_lifted(
     cams: list[Camera],
     renderer: SemanticRenderer | Rasterizer,
     report: Report,
+    refine: RefineParams,
 ) -> QueryResult:
     """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lifted);
-    a bare Rasterizer (no field) gives the field-free answer."""
-    from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
+    a bare Rasterizer (no field) gives the field-free answer. On a RES index that grows, with
+    --progressive, each answer before the last is written as the last is (masks, selection,
+    PLY), in place, and the views indexed are published when the query ends, however it
+    ends."""
+    from stages.query.lifted_query import answer_prompt
 
     rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
-    masks = res_source(
-        sources.res_masks, sources.bundle, sources.prompt_id, prompt, rast, sources.res_index, scene
-    )
-    ans = answer_prompt(scene, renderer, prompt, text, masks, hp, lp, report)
+    grow = open_growing(sources, scene, refine, report)
     pdir = Path(run.out) / safe_name(prompt)
-    written = write_masks(rast, ans.selected, cams, pdir / "masks", True, True, report)
-    sel_path = write_lifted_selection(
-        pdir / "selection.h5", ans, scene, field_path, lp, True, prompt
-    )
-    ply = _export(scene, ans.selected, prompt, "lifted", run, pdir)
-    info = {"views": ans.views, "chosen_by": ans.chosen_by}
-    return QueryResult(prompt, pdir, False, written, sel_path, ply, int(ans.selected.sum()), info)
+
+    def write(ans: LiftedAnswer, done: int = 0, total: int = 0) -> QueryResult:
+        from stages.core.staging import current_stage
+        from stages.query.lifted_query import write_lifted_selection, write_masks
+
+        written = write_masks(rast, ans.selected, cams, pdir / "masks", True, True, report)
+        sel_path = write_lifted_selection(
+            pdir / "selection.h5", ans, scene, field_path, lp, True, prompt
+        )
+        ply = _export(scene, ans.selected, prompt, "lifted", run, pdir)
+        info = {"views": ans.views, "chosen_by": ans.chosen_by}
+        if done:
+            stage = current_stage()
+            if stage is not None:  # this answer's files in place now, together
+                stage.commit()
+            report.log(
+                f"answer written ({done} of {total} views, {int(ans.selected.sum())} "
+                f"Gaussians): {sel_path}; refining"
+            )
+        n = int(ans.selected.sum())
+        return QueryResult(prompt, pdir, False, written, sel_path, ply, n, info)
+
+    try:
+        masks = res_source(
+            sources.res_masks, sources.bundle, sources.prompt_id, prompt, rast,
+            sources.res_index, scene, grow,
+        )  # fmt: skip
+        on_answer = write if refine.progressive else None
+        ans = answer_prompt(
+            scene, renderer, prompt, text, masks, hp, lp, report, refine=refine,
+            on_answer=on_answer,
+        )  # fmt: skip
+    finally:
+        if grow is not None:
+            grow.close()
+    return write(ans)
 
 
 def _export(

@@ -17,10 +17,17 @@ import numpy as np
 from stages.core.artifacts import sha256_file, write_png
 from stages.core.errors import GoiError, warn
 from stages.core.files import make_dir
+from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import check_plain_name, safe_name, view_file_name
-from stages.query.res_index import ResIndex, check_res_index, indexable_bundle, load_res_index
+from stages.query.res_index import (
+    GrowingIndex,
+    ResIndex,
+    check_res_index,
+    indexable_bundle,
+    load_res_index,
+)
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
@@ -127,7 +134,7 @@ class ResIndexed:
 
     every_view = True
 
-    def __init__(self, index: ResIndex, bundle: Bundle, prompt: str, scene: Scene):
+    def __init__(self, index: ResIndex | GrowingIndex, bundle: Bundle, prompt: str, scene: Scene):
         self.index = index
         self.bundle = bundle
         self.prompt = prompt
@@ -158,6 +165,51 @@ class ResIndexed:
                 + ",".join(f"{c.name}:{self.index.views.get(c.name, '')}" for c in cams)
             ).encode()
         ).hexdigest()
+
+
+class ResGrowing(ResIndexed):
+    """RES masks from an index that grows as they are asked for (a lifted query's --res-index,
+    stages.query.res_index.GrowingIndex): `available` are the views the index holds, which
+    cost the prompt side; `mask` of any other training view first indexes it (the bundle's
+    image side on its photo, kept in the index), and it costs the same from then on. The
+    lifted route decides which views to add (stages.query.lifted)."""
+
+    grows = True
+
+    def __init__(self, index: GrowingIndex, bundle: Bundle, prompt: str, scene: Scene):
+        super().__init__(index, bundle, prompt, scene)
+        self.growing = index
+
+    def mask(self, cam: Camera) -> np.ndarray:
+        if cam.name not in self.growing.views:
+            self.growing.add(cam)
+        return super().mask(cam)
+
+    def plan(self, n: int) -> None:
+        """About `n` views are to be indexed (the progress lines' time left)."""
+        self.growing.plan(n)
+
+    def close(self) -> None:
+        """Publish the views indexed so far (the next prompts read them)."""
+        self.growing.close()
+
+
+def growing_index(
+    path: Path,
+    bundle: Path | Bundle | None,
+    scene: Scene,
+    report: Report = SILENT,
+    wait: float = 600.0,
+) -> GrowingIndex:
+    """--res-index FILE of a lifted query, with its --bundle: checked against the scene like
+    any index (bundle, scene, image set, arrays and values) but free to lack views, or not to
+    exist yet: the query indexes the views it needs."""
+    if bundle is None:
+        raise GoiError(
+            "--res-index needs --bundle DIR: the bundle the index was made with runs the "
+            "prompt side"
+        )
+    return GrowingIndex(path, scene, indexable_bundle(bundle), report, wait)
 
 
 def checked_index(
@@ -209,15 +261,19 @@ def res_source(
     rast: Rasterizer,
     res_index: Path | None = None,
     scene: Scene | None = None,
+    grow: GrowingIndex | None = None,
 ) -> ResSource:
-    """Mask files when given, else the bundle's prompt side on a RES index (with the scene),
-    else the bundle's RES model (run on rast's renderings); one of them is needed."""
+    """Mask files when given, else the bundle's prompt side on a RES index (with the scene;
+    `grow`: the lifted route's, opened by growing_index, which may add views), else the
+    bundle's RES model (run on rast's renderings); one of them is needed."""
     if res_masks is not None and res_index is not None:
         raise GoiError("give one of --res-masks DIR or --res-index FILE, not both")
     if res_masks is not None:
         return ResFiles(res_masks, prompt_id, prompt)
     if res_index is not None:
         assert scene is not None
+        if grow is not None:
+            return ResGrowing(grow, grow.bundle, prompt, scene)
         return open_res_index(res_index, bundle, scene, prompt)
     if bundle is not None:
         return ResModel(bundle, prompt, rast)

@@ -35,14 +35,22 @@ from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, read_hyperplanes
-from stages.query.lifted import LiftedAnswer
+from stages.query.lifted import LiftedAnswer, RefineParams
 from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
 from stages.query.lifting import LiftParams
 from stages.query.masks import MaskParams, MaskRun, mask_of, overlay, render_masks
 from stages.query.osh import THRESHOLD, Hyperplane, HyperplaneParams, threshold_plane
 from stages.query.pipeline import PromptSources
 from stages.query.prompts import check_prompt, safe_name, text_embedding
-from stages.query.res import NothingFound, ResFiles, ResIndexed, ResModel, ResSource, checked_index
+from stages.query.res import (
+    NothingFound,
+    ResFiles,
+    ResGrowing,
+    ResModel,
+    ResSource,
+    growing_index,
+)
+from stages.query.res_index import GrowingIndex
 from stages.query.selection import Selection, select, write_selection
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
@@ -219,9 +227,10 @@ class ViewSession:
         refuse_inputs({"--out": [self.out]}, inputs)
         self.prompt_ids = load_prompt_table(run.prompts) if run.prompts else {}
         self.bundle: Bundle | None = load_bundle(sources.bundle) if sources.bundle else None
-        self.index = None
-        if sources.res_index is not None:
-            self.index, self.bundle = checked_index(sources.res_index, sources.bundle, scene)
+        self.index: GrowingIndex | None = None
+        if sources.res_index is not None:  # a lifted answer indexes the views it lacks
+            self.index = growing_index(sources.res_index, sources.bundle, scene, report)
+            self.bundle = self.index.bundle
         elif self.bundle is not None and self.bundle.has_res:
             self.bundle.check_res()
         if sources.res_masks is not None and not Path(sources.res_masks).is_dir():
@@ -344,7 +353,7 @@ class ViewSession:
             return ResFiles(self.sources.res_masks, self.prompt_ids.get(prompt), prompt)
         if self.index is not None:
             assert self.bundle is not None
-            return ResIndexed(self.index, self.bundle, prompt, self.scene)
+            return ResGrowing(self.index, self.bundle, prompt, self.scene)
         if self.bundle is not None and self.bundle.has_res:
             return ResModel(self.bundle, prompt, rast)
         raise GoiError(
@@ -449,9 +458,13 @@ class ViewSession:
                 )  # fmt: skip
                 last[0] = time.perf_counter()
 
-        ans = answer_prompt(
-            self.scene, renderer, prompt, text, masks, self.hp, self.lp, report, partial=partial
-        )
+        every = RefineParams(all_views=True)  # an index that lacks views: indexed as it refines
+        try:
+            ans = answer_prompt(self.scene, renderer, prompt, text, masks, self.hp, self.lp,
+                                report, partial=partial, refine=every)  # fmt: skip
+        finally:
+            if self.index is not None:
+                self.index.close()  # the views indexed so far, kept for the next prompts
         n = len(ans.views)
         label = f"{ROUTE_NAMES[route]}, {n} views"
         return Answer(prompt, route, ans.selected, label, True, lifted=ans, views_done=n,

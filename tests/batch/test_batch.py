@@ -275,3 +275,38 @@ def test_a_failed_job_is_named_with_its_error_and_the_batch_exits_1(scenes, tmp_
     last = cap.err.strip().splitlines()[-1]
     assert last.startswith("goi: error: batch: Snakemake stopped with exit status 1; ")
     assert "query-object-9-" in last and "o9" in last, last
+
+
+@pytest.mark.slow
+def test_the_index_is_built_as_parallel_jobs(scenes, res_bundles, tmp_path, capfd):
+    """index_jobs: 2: two goi index-res jobs each index a part of the views (at once, with
+    --jobs 2), a third merges them; the parts are removed, the index holds every view."""
+    from stages.query.res_index import load_res_index
+    from stages.scene.scene import load_scene
+
+    snakemake()
+    bundle = res_bundles["grounded"]
+    scene = photographed(scenes["c"] / "scene", tmp_path / "scene")
+    cfg = tmp_path / "batch.yaml"
+    cfg.write_text(
+        f"scenes:\n  - scene: {scene}\n    bundle: {bundle}\n    res_index: true\n"
+        "    index_jobs: 2\n    lift: true\n    prompts: [a chair]\n"
+    )
+    assert main(["batch", str(cfg), "--dry-run"]) == 0
+    err = "".join(capfd.readouterr())
+    stats = dict(re.findall(r"^(\w+)\s+(\d+)$", err, re.M))
+    want = {"index_res_part": "2", "index_res": "1", "query": "1", "total": "5"}
+    assert {k: stats.get(k) for k in want} == want, err[-3000:]
+    assert main(["batch", str(cfg), "--jobs", "2"]) == 0
+    out = tmp_path / "goi-batch" / "scene"
+    index = load_res_index(out / "res_index.h5")
+    assert sorted(index.views) == sorted(c.name for c in load_scene(scene).views("train"))
+    assert not list(out.glob("res_index.part*"))
+    logs = sorted(p.name for p in (out / "logs").glob("index-res*.log"))
+    assert logs == ["index-res-1of2.log", "index-res-2of2.log", "index-res.log"]
+    assert "views from 2 parts (--merge)" in (out / "logs" / "index-res.log").read_text()
+    cfg.write_text(cfg.read_text().replace("res_index: true", "res_index: false"))
+    assert main(["batch", str(cfg), "--dry-run"]) == 2
+    assert "'scenes[0].index_jobs' is given but 'res_index' is not true" in "".join(
+        capfd.readouterr()
+    )

@@ -13,13 +13,16 @@ import pytest
 
 from goi_cli.main import main
 from schemas import validate_file
+from stages.core.errors import GoiError
 from stages.models.bundle import load_bundle
 from stages.query.prompts import safe_name
-from stages.query.res_index import load_res_index
+from stages.query.res import checked_index
+from stages.query.res_index import index_order, load_res_index
 from stages.query.selection import load_selection
 from stages.render.rasterizer import Rasterizer
 from stages.scene.gaussians import load_ply
 from stages.scene.images import read_rgb
+from stages.scene.scene import load_scene
 from tests.helpers import semantic_scene
 
 PROMPT = "the red box"
@@ -56,7 +59,10 @@ def test_an_index_answers_as_the_bundle_does(photographed, res_bundles, tmp_path
     assert _index(s, bundle, idx) == 0
     assert validate_file(idx, "goi.res_index")[1] == []
     index = load_res_index(idx)
-    assert list(index.views) == s["train"]
+    # every training view, in the index's order (camera-pose farthest-point sampling)
+    cams = [s["cameras"][v] for v in s["train"]]
+    assert list(index.views) == [c.name for c in index_order(cams)]
+    assert sorted(index.views) == sorted(s["train"])
     b = load_bundle(bundle)
     assert index.bundle_sha256 == b.digest()
     prompt = b.res_prompt(PROMPT)
@@ -99,7 +105,7 @@ def test_a_cut_off_index_resumes_and_bad_indexes_are_refused(
     assert "resuming" in capsys.readouterr().err
     assert not partial.exists()
     again = load_res_index(tmp_path / "again.h5")
-    assert list(again.views) == list(full.views)
+    assert sorted(again.views) == sorted(full.views)
     for v in s["train"]:
         a, b = again.image_side(v), full.image_side(v)
         assert all(np.array_equal(a[k], b[k]) for k in a)
@@ -123,13 +129,15 @@ def test_a_cut_off_index_resumes_and_bad_indexes_are_refused(
             match="was made with bundle")  # fmt: skip
     # no bundle
     refused("--res-index", str(idx), match="--res-index needs --bundle")
-    # a view missing
+    # a view missing: a reader that needs every view refuses it by name (a lifted query
+    # indexes it instead: tests/query/test_res_index_growing.py)
     lacking = tmp_path / "lacking.h5"
     shutil.copy(idx, lacking)
     with h5py.File(lacking, "r+") as f:
         del f["views"][s["train"][3]]
-    refused("--res-index", str(lacking), "--bundle", str(bundle),
-            match=f"lacks view '{s['train'][3]}'")  # fmt: skip
+    scene = load_scene(s["scene"])
+    with pytest.raises(GoiError, match=f"lacks view '{s['train'][3]}'"):
+        checked_index(lacking, bundle, scene)
     # another image set: one photo changed
     other = tmp_path / "other_scene"
     shutil.copytree(s["scene"], other)
