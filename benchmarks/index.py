@@ -150,9 +150,9 @@ def _first_answers(
 ) -> None:
     """The first prompt on a scene without an index, then a second one on its views."""
     from stages.models.bundle import load_bundle
-    from stages.query.lifted import RefineParams
-    from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
-    from stages.query.lifting import LiftParams
+    from stages.query.lift_answer import RefineParams
+    from stages.query.lift_files import answer_prompt, write_lifted_selection, write_masks
+    from stages.query.lift_math import LiftParams
     from stages.query.osh import HyperplaneParams
     from stages.query.pipeline import PromptSources, QueryParams, QueryRun, run_query
     from stages.query.res import ResGrowing, growing_index
@@ -295,8 +295,8 @@ def _curve(room: Path, field_path: Path | None) -> dict[str, float]:
     from stages.evaluation.metrics import image_scores
     from stages.evaluation.room import load_room
     from stages.evaluation.variants import VisibilityCache
-    from stages.query.lifted import lift_prompt, lifted_masks
-    from stages.query.lifting import LiftParams
+    from stages.query.lift_answer import lift_prompt, lifted_masks
+    from stages.query.lift_math import LiftParams
     from stages.query.osh import HyperplaneParams
     from stages.query.res import ResFiles
     from stages.query.res_index import index_order
@@ -372,8 +372,8 @@ def _full_index(
     median_s: Callable[..., float],
 ) -> dict[str, float]:
     """#22's figures: the whole index first, then prompts from it (module doc)."""
-    from stages.query.lifted import lift_prompt, lifted_masks
-    from stages.query.lifting import LiftParams
+    from stages.query.lift_answer import lift_prompt, lifted_masks
+    from stages.query.lift_math import LiftParams
     from stages.query.osh import HyperplaneParams
     from stages.query.res import ResIndexed, checked_index
     from stages.query.res_index import ResIndexRun, build_res_index

@@ -428,8 +428,8 @@ def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, f
     first mask rendered from the 3D selection)."""
     import cv2
 
-    from stages.query.lifted import lift_prompt, lifted_masks, view_evidence
-    from stages.query.lifting import LiftParams
+    from stages.query.lift_answer import lift_prompt, lifted_masks, view_evidence
+    from stages.query.lift_math import LiftParams
     from stages.query.osh import HyperplaneParams
     from stages.query.res import ResFiles
 

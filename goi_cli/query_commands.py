@@ -20,8 +20,8 @@ from goi_cli.report import TERMINAL
 from stages.core.staging import staged_outputs
 from stages.query.export_ply import PlyEditParams, PlyExportRun
 from stages.query.hyperplanes import HyperplaneRun
-from stages.query.lifted import RefineParams
-from stages.query.lifting import LiftParams
+from stages.query.lift_answer import RefineParams
+from stages.query.lift_math import LiftParams
 from stages.query.masks import MaskParams, MaskRun
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryRun
@@ -126,7 +126,7 @@ def _lifted_answer(  # noqa: ANN202
     --progressive (`progressive`: the command rewrites its output) `on_answer` gets each
     answer before the last."""
     from stages.core.errors import GoiError
-    from stages.query.lifted_query import answer_prompt
+    from stages.query.lift_files import answer_prompt
     from stages.query.pipeline import check_field_free, check_refine, open_growing
     from stages.query.prompts import check_prompt, text_embedding
     from stages.query.res import res_source
@@ -300,7 +300,7 @@ def render_mask_cmd(
     inputs = [field, hyperplanes, camera_file, *_source_paths(kw), *_scene_files(scene)]
     check_mask_outputs(run.out, chosen, not run.no_overlay, run.force, inputs)
     if kw["lift"]:
-        from stages.query.lifted_query import write_masks
+        from stages.query.lift_files import write_masks
 
         ans, rast, _ = _lifted_answer(scene, field, prompt, kw)
         with staged_outputs():
@@ -356,7 +356,7 @@ def select_cmd(
     check_writable(out, force, "--out")
     refuse_inputs({"--out": out}, [field, hyperplanes, *_source_paths(kw), *_scene_files(scene)])
     if kw["lift"]:
-        from stages.query.lifted_query import write_lifted_selection
+        from stages.query.lift_files import write_lifted_selection
 
         written = [False]
 

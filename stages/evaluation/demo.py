@@ -23,7 +23,7 @@ from stages.evaluation.metrics import image_scores, mean_scores
 from stages.evaluation.report import esc, rel, res_row, write_page
 from stages.evaluation.room import Prompt, load_prompts
 from stages.models.bundle import load_bundle
-from stages.query.lifting import LiftParams
+from stages.query.lift_math import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryResult, QueryRun, run_query
 from stages.query.prompts import safe_name, view_file_name

@@ -8,7 +8,7 @@
 and goi's added mode (not in the paper):
 
   lifted        TFCC field + OSH + the RES masks of several views lifted onto the Gaussians
-                (stages.query.lifted): every mask file of the prompt, or K views chosen by goi
+                (stages.query.lift_answer): every mask file of the prompt, or K views chosen by goi
                 with the room's mask files standing in for a RES model; masks are rendered
                 from the 3D selection
   lifted_fieldless  the same views' RES masks lifted, without any field (no features,
@@ -31,8 +31,8 @@ import numpy as np
 
 from stages.core.errors import warn
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
-from stages.query.lifted import MaskSource, lift_prompt, lifted_masks, view_visibility
-from stages.query.lifting import LiftParams, vote_share
+from stages.query.lift_answer import MaskSource, lift_prompt, lifted_masks, view_visibility
+from stages.query.lift_math import LiftParams, vote_share
 from stages.query.masks import mask_of
 from stages.query.osh import Counts, HyperplaneParams, fit_osh, probability, threshold_plane
 from stages.query.res import NothingFound, ResFiles, ResSource, choose_views

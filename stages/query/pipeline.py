@@ -21,8 +21,8 @@ from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, res_masks_dir, wrote_res_masks
-from stages.query.lifted import LiftedAnswer, RefineParams
-from stages.query.lifting import LiftParams
+from stages.query.lift_answer import LiftedAnswer, RefineParams
+from stages.query.lift_math import LiftParams
 from stages.query.masks import (
     MODES,
     MaskParams,
@@ -142,7 +142,7 @@ def run_query(
     refine: RefineParams | None = None,
 ) -> QueryResult:
     """The query of one prompt. field_path None (with --lift) is the field-free lifted mode.
-    `refine`: on a RES index that grows, how the answer refines (stages.query.lifted)."""
+    `refine`: on a RES index that grows, how the answer refines (stages.query.lift_answer)."""
     prompt = check_prompt(prompt)
     lp = lp or LiftParams()
     refine = refine or RefineParams()
@@ -234,7 +234,7 @@ def _empty_answer(
     report: Report,
 ) -> QueryResult:
     """The RES found nothing on any view: empty masks (with overlays), an empty selection."""
-    from stages.query.lifted_query import write_masks
+    from stages.query.lift_files import write_masks
 
     pdir = Path(run.out) / safe_name(prompt)
     none = np.zeros(scene.gaussians.count, bool)
@@ -299,12 +299,12 @@ def _run_lifted(
     report: Report,
     refine: RefineParams,
 ) -> QueryResult:
-    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lifted);
+    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lift_answer);
     a bare Rasterizer (no field) gives the field-free answer. On a RES index that grows, with
     --progressive, each answer before the last is written as the last is (masks, selection,
     PLY), in place, and the views indexed are published when the query ends, however it
     ends."""
-    from stages.query.lifted_query import answer_prompt
+    from stages.query.lift_files import answer_prompt
 
     rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
     grow = open_growing(sources, scene, refine, report)
@@ -312,7 +312,7 @@ def _run_lifted(
 
     def write(ans: LiftedAnswer, done: int = 0, total: int = 0) -> QueryResult:
         from stages.core.staging import current_stage
-        from stages.query.lifted_query import write_lifted_selection, write_masks
+        from stages.query.lift_files import write_lifted_selection, write_masks
 
         written = write_masks(rast, ans.selected, cams, pdir / "masks", True, True, report)
         sel_path = write_lifted_selection(

@@ -172,7 +172,7 @@ class ResGrowing(ResIndexed):
     stages.query.res_index.GrowingIndex): `available` are the views the index holds, which
     cost the prompt side; `mask` of any other training view first indexes it (the bundle's
     image side on its photo, kept in the index), and it costs the same from then on. The
-    lifted route decides which views to add (stages.query.lifted)."""
+    lifted route decides which views to add (stages.query.lift_answer)."""
 
     grows = True
 

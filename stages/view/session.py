@@ -35,9 +35,9 @@ from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, read_hyperplanes
-from stages.query.lifted import LiftedAnswer, RefineParams
-from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
-from stages.query.lifting import LiftParams
+from stages.query.lift_answer import LiftedAnswer, RefineParams
+from stages.query.lift_files import answer_prompt, write_lifted_selection, write_masks
+from stages.query.lift_math import LiftParams
 from stages.query.masks import MaskParams, MaskRun, mask_of, overlay, render_masks
 from stages.query.osh import THRESHOLD, Hyperplane, HyperplaneParams, threshold_plane
 from stages.query.pipeline import PromptSources

@@ -15,8 +15,8 @@ import pytest
 
 from goi_cli.main import main
 from stages.core.files import output_lock
-from stages.query.lifted import RefineParams
-from stages.query.lifting import LiftParams
+from stages.query.lift_answer import RefineParams
+from stages.query.lift_math import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryRun, run_query
 from stages.query.prompts import safe_name

@@ -59,7 +59,7 @@ from stages.evaluation.report import overlay_pair, page_files_dir
 from stages.evaluation.room import Prompt, Room
 from stages.evaluation.variants import Answerers, Question, TfccModel
 from stages.query.hyperplanes import HyperplaneRun
-from stages.query.lifting import LiftParams
+from stages.query.lift_math import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import load_text_embeddings
 from stages.query.res import ResFiles, ResModel, ResSource
