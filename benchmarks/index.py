@@ -155,6 +155,7 @@ def _first_answers(
     from stages.query.lift_math import LiftParams
     from stages.query.osh import HyperplaneParams
     from stages.query.pipeline import PromptSources, QueryParams, QueryRun, run_query
+    from stages.query.prompts import Prompt
     from stages.query.res import ResGrowing, growing_index
     from stages.render.rasterizer import Rasterizer
 
@@ -163,7 +164,7 @@ def _first_answers(
     def query(prompt: str, where: str) -> Path:
         src = PromptSources(bundle=bundle_dir, res_index=index)
         run = QueryRun(out=tmp / where, export="subset")
-        r = run_query(scene, None, prompt, src, hp, QueryParams(), run, lp=lp,
+        r = run_query(scene, None, Prompt(prompt), src, hp, QueryParams(), run, lp=lp,
                       refine=RefineParams())  # fmt: skip
         return r.selection
 
@@ -332,7 +333,7 @@ def _curve(room: Path, field_path: Path | None) -> dict[str, float]:
 
             for prompt in r.prompts:
                 text = r.embeddings[prompt.text] if name == "field" else None
-                files = ResFiles(room / mask_set, prompt.id, prompt.text)
+                files = ResFiles(room / mask_set, prompt.query)
                 # every mask file (the eval's figure)
                 ans = lift_prompt(renderer, train, files, prompt.text, text, hp,
                                   LiftParams(lift=True), vis)  # fmt: skip
@@ -466,6 +467,7 @@ def _paper_route(
 
     from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
     from stages.query.masks import MaskParams, MaskRun, render_masks
+    from stages.query.prompts import Prompt
     from stages.query.res import ResIndexed, growing_index
     from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
     from stages.semantics.decode import SemanticRenderer
@@ -497,7 +499,7 @@ def _paper_route(
     unit /= np.linalg.norm(unit)
     try:
         plane, _ = fit_hyperplane(
-            renderer, field_path, scene.views("train"), PROMPT, unit, "bench", src,
+            renderer, field_path, scene.views("train"), Prompt(PROMPT), unit, "bench", src,
             HyperplaneParams(), HyperplaneRun(w / "hp.h5"),
         )  # fmt: skip
         render_masks(renderer, plane, scene.views("test"), MaskParams(), MaskRun(w / "m"))

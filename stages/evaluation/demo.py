@@ -158,14 +158,13 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
             scene_dir / "text_embeddings.json",
             run.bundle,
             None if run.bundle else scene_dir / "res",
-            prompt.id,
-            run.res_index,
+            res_index=run.res_index,
         )
         both = [
             run_query(
                 scene,
                 field_path,
-                prompt.text,
+                prompt.query,
                 sources,
                 HyperplaneParams(),
                 QueryParams(),

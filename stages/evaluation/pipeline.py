@@ -608,7 +608,7 @@ def run_eval(
     if res is not None:
         if run.res_index is not None:
             raise GoiError("give one of --res-masks DIR or --res-index FILE (with --bundle)")
-        sources = {p.id: ResFiles(Path(res), p.id, p.text) for p in room.prompts}
+        sources = {p.id: ResFiles(Path(res), p.query) for p in room.prompts}
     if run.res_index is not None:
         index, ib = checked_index(Path(run.res_index), bundle, room.scene)
         sources = {p.id: ResIndexed(index, ib, p.text, room.scene) for p in room.prompts}
@@ -712,7 +712,7 @@ def run_eval(
         source = sources[prompt.id]
         views = [v for v in prompt.test_views if v in test]
         gts = {v: room.ground_truth(prompt, v) for v in views}
-        question = Question(prompt.text, text, source, views, train, hp, lp, planes, p.seed)
+        question = Question(prompt.query, text, source, views, train, hp, lp, planes, p.seed)
         for variant in variants:
             t0 = time.perf_counter()
             pred = models.predict(variant, question)

@@ -14,6 +14,7 @@ from stages.query.lift_math import (
     vote_share,
 )
 from stages.query.osh import HyperplaneParams, probability
+from stages.query.prompts import Prompt
 from stages.query.res import ResFiles
 from stages.query.views import next_view, provisional
 from stages.render.lift import selection_mask
@@ -183,7 +184,7 @@ def test_lift_prompt_from_mask_files(room):
     d = room["dir"] / "res" / "p"
     names = [c.name for c in room["cams"][::2]]
     _write_masks(room, d, target, names)
-    src = ResFiles(d.parent, "p", "the box")
+    src = ResFiles(d.parent, Prompt("the box", "p"))
     hp = HyperplaneParams()
     ans = lift_prompt(
         SemanticRenderer(room["g"], field),
@@ -226,7 +227,7 @@ def test_lift_prompt_bad_inputs(room, tmp_path):
     import cv2
 
     cv2.imwrite(str(d / "nope.png"), np.zeros((72, 96), np.uint8))
-    src = ResFiles(d.parent, "p", "x")
+    src = ResFiles(d.parent, Prompt("x", "p"))
     with pytest.raises(GoiError, match="none of the 16 training views"):
         lift_prompt(
             SemanticRenderer(room["g"], field),
@@ -262,7 +263,7 @@ def test_lift_prompt_without_a_field(room):
     d = room["dir"] / "res_free" / "p"
     names = [c.name for c in room["cams"][::2]]
     _write_masks(room, d, target, names)
-    src = ResFiles(d.parent, "p", "the box")
+    src = ResFiles(d.parent, Prompt("the box", "p"))
     lp = LiftParams(lift=True)
     ans = lift_prompt(rast, room["cams"], src, "the box", None, HyperplaneParams(), lp)
     assert ans.plane is None and ans.views == names
@@ -290,7 +291,7 @@ def test_a_res_that_finds_nothing_anywhere_gives_an_empty_answer(room):
     d = room["dir"] / "res_nothing" / "p"
     names = [c.name for c in room["cams"][::4]]
     _write_masks(room, d, np.zeros(ids.size, bool), names)
-    src = ResFiles(d.parent, "p", "a unicorn")
+    src = ResFiles(d.parent, Prompt("a unicorn", "p"))
     text = field.unit_codebook()[TARGET]  # the text alone would select the target's entry
     for renderer, t in ((SemanticRenderer(room["g"], field), text), (room["rast"], None)):
         with pytest.warns(GoiWarning, match="found nothing for 'a unicorn' on any of the 4 views"):
