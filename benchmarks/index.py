@@ -150,11 +150,12 @@ def _first_answers(
 ) -> None:
     """The first prompt on a scene without an index, then a second one on its views."""
     from stages.models.bundle import load_bundle
-    from stages.query.lifted import RefineParams
-    from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
-    from stages.query.lifting import LiftParams
+    from stages.query.lift_answer import RefineParams
+    from stages.query.lift_files import answer_prompt, write_lifted_selection, write_masks
+    from stages.query.lift_math import LiftParams
     from stages.query.osh import HyperplaneParams
     from stages.query.pipeline import PromptSources, QueryParams, QueryRun, run_query
+    from stages.query.prompts import Prompt
     from stages.query.res import ResGrowing, growing_index
     from stages.render.rasterizer import Rasterizer
 
@@ -163,7 +164,7 @@ def _first_answers(
     def query(prompt: str, where: str) -> Path:
         src = PromptSources(bundle=bundle_dir, res_index=index)
         run = QueryRun(out=tmp / where, export="subset")
-        r = run_query(scene, None, prompt, src, hp, QueryParams(), run, lp=lp,
+        r = run_query(scene, None, Prompt(prompt), src, hp, QueryParams(), run, lp=lp,
                       refine=RefineParams())  # fmt: skip
         return r.selection
 
@@ -295,8 +296,8 @@ def _curve(room: Path, field_path: Path | None) -> dict[str, float]:
     from stages.evaluation.metrics import image_scores
     from stages.evaluation.room import load_room
     from stages.evaluation.variants import VisibilityCache
-    from stages.query.lifted import lift_prompt, lifted_masks
-    from stages.query.lifting import LiftParams
+    from stages.query.lift_answer import lift_prompt, lifted_masks
+    from stages.query.lift_math import LiftParams
     from stages.query.osh import HyperplaneParams
     from stages.query.res import ResFiles
     from stages.query.res_index import index_order
@@ -332,7 +333,7 @@ def _curve(room: Path, field_path: Path | None) -> dict[str, float]:
 
             for prompt in r.prompts:
                 text = r.embeddings[prompt.text] if name == "field" else None
-                files = ResFiles(room / mask_set, prompt.id, prompt.text)
+                files = ResFiles(room / mask_set, prompt.query)
                 # every mask file (the eval's figure)
                 ans = lift_prompt(renderer, train, files, prompt.text, text, hp,
                                   LiftParams(lift=True), vis)  # fmt: skip
@@ -372,8 +373,8 @@ def _full_index(
     median_s: Callable[..., float],
 ) -> dict[str, float]:
     """#22's figures: the whole index first, then prompts from it (module doc)."""
-    from stages.query.lifted import lift_prompt, lifted_masks
-    from stages.query.lifting import LiftParams
+    from stages.query.lift_answer import lift_prompt, lifted_masks
+    from stages.query.lift_math import LiftParams
     from stages.query.osh import HyperplaneParams
     from stages.query.res import ResIndexed, checked_index
     from stages.query.res_index import ResIndexRun, build_res_index
@@ -466,6 +467,7 @@ def _paper_route(
 
     from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
     from stages.query.masks import MaskParams, MaskRun, render_masks
+    from stages.query.prompts import Prompt
     from stages.query.res import ResIndexed, growing_index
     from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
     from stages.semantics.decode import SemanticRenderer
@@ -497,7 +499,7 @@ def _paper_route(
     unit /= np.linalg.norm(unit)
     try:
         plane, _ = fit_hyperplane(
-            renderer, field_path, scene.views("train"), PROMPT, unit, "bench", src,
+            renderer, field_path, scene.views("train"), Prompt(PROMPT), unit, "bench", src,
             HyperplaneParams(), HyperplaneRun(w / "hp.h5"),
         )  # fmt: skip
         render_masks(renderer, plane, scene.views("test"), MaskParams(), MaskRun(w / "m"))

@@ -328,6 +328,7 @@ def suite_query(repeat: int, tmp: Path) -> dict[str, float]:
     from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
     from stages.query.masks import MaskParams, MaskRun, render_masks
     from stages.query.osh import HyperplaneParams
+    from stages.query.prompts import Prompt
     from stages.query.res import ResFiles
     from stages.scene.cameras import Camera
     from stages.semantics.decode import SemanticRenderer
@@ -358,9 +359,9 @@ def suite_query(repeat: int, tmp: Path) -> dict[str, float]:
 
     def plane(refit: bool):  # noqa: ANN202
         run = HyperplaneRun(out=tmp / "planes.h5", refit=refit)
-        src = ResFiles(res, None, "p")
+        src = ResFiles(res, Prompt("p"))
         return fit_hyperplane(
-            renderer, field_path, train, "p", text, "bench", src, HyperplaneParams(), run
+            renderer, field_path, train, Prompt("p"), text, "bench", src, HyperplaneParams(), run
         )[0]
 
     def mask(p, overlay: bool) -> None:  # noqa: ANN001
@@ -428,9 +429,10 @@ def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, f
     first mask rendered from the 3D selection)."""
     import cv2
 
-    from stages.query.lifted import lift_prompt, lifted_masks, view_evidence
-    from stages.query.lifting import LiftParams
+    from stages.query.lift_answer import lift_prompt, lifted_masks, view_evidence
+    from stages.query.lift_math import LiftParams
     from stages.query.osh import HyperplaneParams
+    from stages.query.prompts import Prompt
     from stages.query.res import ResFiles
 
     res8 = tmp / "res8"
@@ -439,7 +441,7 @@ def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, f
         m = np.zeros((480, 640), np.uint8)
         cv2.circle(m, (320 + 20 * i, 240), 90, 255, -1)
         cv2.imwrite(str(res8 / f"{cam.name}.png"), m)
-    src = ResFiles(res8, None, "p")
+    src = ResFiles(res8, Prompt("p"))
     mask = src.mask(train[0])
     rast = renderer.rast
 

@@ -146,6 +146,7 @@ def _query(root: Path, work: Path, made: dict, repeat: int) -> dict[str, float]:
     from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
     from stages.query.masks import MaskParams, MaskRun, render_masks
     from stages.query.osh import HyperplaneParams
+    from stages.query.prompts import Prompt
     from stages.query.res import ResFiles
     from stages.scene.scene import load_scene
     from stages.semantics.decode import SemanticRenderer
@@ -156,12 +157,12 @@ def _query(root: Path, work: Path, made: dict, repeat: int) -> dict[str, float]:
     renderer = SemanticRenderer(scene.gaussians, field)
     text = made["text"]  # the object's own feature stands in for its name's embedding
     novel = made["novel"]
-    res = ResFiles(root / "res", None, "object")
+    res = ResFiles(root / "res", Prompt("object"))
 
     def plane(refit: bool):  # noqa: ANN202
         run = HyperplaneRun(work / "planes.h5", refit=refit)
         return fit_hyperplane(
-            renderer, work / "field.h5", made["train"], "object", text, "bench", res,
+            renderer, work / "field.h5", made["train"], Prompt("object"), text, "bench", res,
             HyperplaneParams(), run,
         )[0]  # fmt: skip
 

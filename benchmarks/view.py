@@ -175,7 +175,7 @@ def _dev_field(room: Path, scene, tmp: Path) -> Path:  # noqa: ANN001
 
 def _mask_at_camera(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
     from benchmarks.run import synthetic_scene
-    from stages.query.lifted import lifted_masks
+    from stages.query.lift_answer import lifted_masks
     from stages.render.rasterizer import Rasterizer
     from stages.testing.synthetic import ring_cameras
     from stages.view.session import rgb_and_selection

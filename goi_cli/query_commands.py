@@ -20,8 +20,8 @@ from goi_cli.report import TERMINAL
 from stages.core.staging import staged_outputs
 from stages.query.export_ply import PlyEditParams, PlyExportRun
 from stages.query.hyperplanes import HyperplaneRun
-from stages.query.lifted import RefineParams
-from stages.query.lifting import LiftParams
+from stages.query.lift_answer import RefineParams
+from stages.query.lift_math import LiftParams
 from stages.query.masks import MaskParams, MaskRun
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryRun
@@ -114,7 +114,7 @@ answer_options = stack(
 def _lifted_answer(  # noqa: ANN202
     scene,  # noqa: ANN001
     field: Path | None,
-    prompt: str,
+    text: str,
     kw: dict,
     need_positive: bool = False,
     on_answer: Callable | None = None,
@@ -126,9 +126,9 @@ def _lifted_answer(  # noqa: ANN202
     --progressive (`progressive`: the command rewrites its output) `on_answer` gets each
     answer before the last."""
     from stages.core.errors import GoiError
-    from stages.query.lifted_query import answer_prompt
+    from stages.query.lift_files import answer_prompt
     from stages.query.pipeline import check_field_free, check_refine, open_growing
-    from stages.query.prompts import check_prompt, text_embedding
+    from stages.query.prompts import Prompt, text_embedding
     from stages.query.res import res_source
     from stages.render.rasterizer import Rasterizer
     from stages.semantics.decode import SemanticRenderer
@@ -143,24 +143,24 @@ def _lifted_answer(  # noqa: ANN202
         raise GoiError(
             "--progressive: only goi query and goi select rewrite their answer as it refines"
         )
-    prompt = check_prompt(prompt)
-    text = None
+    prompt = Prompt.checked(text, src.prompt_id)
+    embedding = None
     renderer: Rasterizer | SemanticRenderer
     if field is None:
         check_field_free(lp, src)
         renderer = rast = Rasterizer.from_gaussians(scene.gaussians)
     else:
         f = load_field_for(field, scene.ply_digest())
-        text, _ = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
+        embedding, _ = text_embedding(
+            prompt.text, f.codebook.shape[1], src.text_embeddings, src.bundle
+        )
         renderer = SemanticRenderer(scene.gaussians, f)
         rast = renderer.rast
     grow = open_growing(src, scene, refine, TERMINAL)
     try:
-        masks = res_source(
-            src.res_masks, src.bundle, src.prompt_id, prompt, rast, src.res_index, scene, grow
-        )
+        masks = res_source(src.res_masks, src.bundle, prompt, rast, src.res_index, scene, grow)
         ans = answer_prompt(
-            scene, renderer, prompt, text, masks, hp, lp, TERMINAL, need_positive,
+            scene, renderer, prompt.text, embedding, masks, hp, lp, TERMINAL, need_positive,
             refine=refine, on_answer=on_answer if refine.progressive else None,
         )  # fmt: skip
     finally:
@@ -224,7 +224,7 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     """
     from stages.core.files import refuse_inputs
     from stages.query.hyperplanes import add_plane, fit_hyperplane, res_masks_dir, wrote_res_masks
-    from stages.query.prompts import check_prompt, text_embedding
+    from stages.query.prompts import Prompt, text_embedding
     from stages.query.res import res_source
     from stages.semantics.decode import SemanticRenderer
     from stages.semantics.field import load_field_for
@@ -248,25 +248,23 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     _not_lifted(kw)
     src = build(PromptSources, kw)
     p, run = build(HyperplaneParams, kw), build(HyperplaneRun, kw)
-    prompt = check_prompt(prompt)
+    q = Prompt.checked(prompt, src.prompt_id)
     inputs = [field, src.text_embeddings, src.bundle, src.res_masks, src.res_index, scene.ply_path]
     refuse_inputs({"--out": run.out}, [*inputs, *scene.camera_files])
     f = load_field_for(field, scene.ply_digest())
-    text, text_source = text_embedding(prompt, f.codebook.shape[1], src.text_embeddings, src.bundle)
+    text, text_source = text_embedding(q.text, f.codebook.shape[1], src.text_embeddings, src.bundle)
     renderer = SemanticRenderer(scene.gaussians, f)
-    masks = res_source(
-        src.res_masks, src.bundle, src.prompt_id, prompt, renderer.rast, src.res_index, scene
-    )
+    masks = res_source(src.res_masks, src.bundle, q, renderer.rast, src.res_index, scene)
     with staged_outputs():  # the plane and the RES masks it was fitted on, or neither
         train = scene.views("train")
         plane, cached = fit_hyperplane(
-            renderer, field, train, prompt, text, text_source, masks, p, run, TERMINAL
+            renderer, field, train, q, text, text_source, masks, p, run, TERMINAL
         )
     n = int(plane.positive.sum())
     state = "cached" if cached else "fitted"
     click.echo(f"hyperplane ({state}, {n} of {plane.scores.size} entries positive): {run.out}")
     if wrote_res_masks(masks, cached):
-        click.echo(f"RES masks it was fitted on: {res_masks_dir(run.out, prompt)}")
+        click.echo(f"RES masks it was fitted on: {res_masks_dir(run.out, q)}")
 
 
 @click.command("render-mask", short_help="Render the prompt's mask and an overlay at any camera.")
@@ -300,7 +298,7 @@ def render_mask_cmd(
     inputs = [field, hyperplanes, camera_file, *_source_paths(kw), *_scene_files(scene)]
     check_mask_outputs(run.out, chosen, not run.no_overlay, run.force, inputs)
     if kw["lift"]:
-        from stages.query.lifted_query import write_masks
+        from stages.query.lift_files import write_masks
 
         ans, rast, _ = _lifted_answer(scene, field, prompt, kw)
         with staged_outputs():
@@ -356,7 +354,7 @@ def select_cmd(
     check_writable(out, force, "--out")
     refuse_inputs({"--out": out}, [field, hyperplanes, *_source_paths(kw), *_scene_files(scene)])
     if kw["lift"]:
-        from stages.query.lifted_query import write_lifted_selection
+        from stages.query.lift_files import write_lifted_selection
 
         written = [False]
 
@@ -425,13 +423,15 @@ def query_cmd(field: Path | None, prompt: str, **kw) -> None:
     """Query the scene with a text prompt: fit the hyperplane unless cached, render masks,
     select the Gaussians of interest and export them as a PLY. Prints where everything went."""
     from stages.query.pipeline import run_query
+    from stages.query.prompts import Prompt
 
     scene = load_scene_from(kw)
     src = build(PromptSources, kw)
     hp, qp, run = build(HyperplaneParams, kw), build(QueryParams, kw), build(QueryRun, kw)
     lp, refine = build_lift(kw)
+    q = Prompt.checked(prompt, src.prompt_id)
     with staged_outputs():  # masks, selection, PLY and the plane appear together, or not at all
-        r = run_query(scene, field, prompt, src, hp, qp, run, report=TERMINAL, lp=lp, refine=refine)
+        r = run_query(scene, field, q, src, hp, qp, run, report=TERMINAL, lp=lp, refine=refine)
     click.echo(f"prompt:     {r.prompt}")
     if lp.lift:
         click.echo(f"lifted:     {len(r.info['views'])} views ({r.info['chosen_by']})")

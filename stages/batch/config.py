@@ -19,10 +19,10 @@ from schemas import current_version, definition
 from stages.core.errors import GoiError
 from stages.core.files import read_text
 from stages.query.prompts import (
+    Prompt,
     check_plain_name,
     check_prompt,
     load_text_embeddings,
-    safe_name,
     text_embedding,
 )
 from stages.query.res import ResFiles, checked_index
@@ -216,10 +216,11 @@ def _kind(v: Any) -> str:
 
 
 @dataclass
-class Prompt:
-    text: str
-    id: str | None  # the subdirectory of res_masks, when it is not the safe name
-    key: str  # the answer's wildcard: the text's safe name
+class PromptJob:
+    """One prompt of a scene: its answer's wildcard is the prompt's file name (`name`), and its
+    id, when given, the subdirectory of res_masks (when it is not that name)."""
+
+    prompt: Prompt
     masks: list[str] = field(default_factory=list)  # its RES mask files, when res_masks holds any
 
 
@@ -238,7 +239,7 @@ class SceneJob:
     #: (stage, option name) -> its line in the file and its value (checked by the CLI, which
     #: knows the commands' options)
     option_values: dict[tuple[str, str], tuple[int, Any]]
-    prompts: list[Prompt] = field(default_factory=list)
+    prompts: list[PromptJob] = field(default_factory=list)
     #: more files whose change reruns a stage: the feature maps or the encoder's manifest
     #: (extract); the text embeddings, the bundle's manifest, a given RES index (query)
     extract_inputs: list[str] = field(default_factory=list)
@@ -283,7 +284,8 @@ class Batch:
                     "index_threads": max(1, (os.cpu_count() or 1) // s.index_parts),
                     "options": s.options,
                     "prompts": {
-                        p.key: {"text": p.text, "id": p.id, "masks": p.masks} for p in s.prompts
+                        p.prompt.name: {"text": p.prompt.text, "id": p.prompt.id, "masks": p.masks}
+                        for p in s.prompts
                     },
                 }
                 for s in self.scenes
@@ -355,9 +357,9 @@ class _Loaded:
             text_embedding(text, next(iter(table.values())).size, path)  # raises, naming it
             raise AssertionError("text_embedding found a text the table lacks")
 
-    def res_files(self, res_masks: Path, prompt_id: str | None, text: str) -> list[str]:
+    def res_files(self, res_masks: Path, prompt: Prompt) -> list[str]:
         """The prompt's mask files, found as the query finds them (refused as it refuses)."""
-        return _files(ResFiles(res_masks, prompt_id, text).dir, "*.png")
+        return _files(ResFiles(res_masks, prompt).dir, "*.png")
 
 
 def _scene(
@@ -485,7 +487,7 @@ def _scene(
             f"{c.path}: line {node.line}: {key} goes the paper's route, whose queries need each "
             "prompt's text embedding: give 'text_embeddings' or a 'bundle' with a text encoder"
         )
-    prompts: list[Prompt] = []
+    prompts: list[PromptJob] = []
     by_key: dict[str, int] = {}
     for i, p in enumerate(prompts_node.value):
         raw, pid = (p.value, None) if isinstance(p.value, str) else _prompt(p)
@@ -496,7 +498,8 @@ def _scene(
         if pid is not None:
             at_id = f"{c.path}: line {p.line}: '{pkey}[{i}].id'"
             check_plain_name(pid, at_id, "a subdirectory of 'res_masks'")
-        k = safe_name(text)
+        prompt = Prompt(text, pid)
+        k = prompt.name
         if k in by_key:
             raise GoiError(
                 f"{c.path}: line {p.line}: {key}: the prompt {text!r} is given twice (also on "
@@ -506,10 +509,10 @@ def _scene(
         try:
             if extract_args is not None and embeddings is not None:
                 loaded.embedding(embeddings, text)
-            masks = loaded.res_files(res_masks, pid, text) if res_masks is not None else []
+            masks = loaded.res_files(res_masks, prompt) if res_masks is not None else []
         except GoiError as e:
             raise GoiError(f"{at}: {e}") from None
-        prompts.append(Prompt(text, pid, k, masks))
+        prompts.append(PromptJob(prompt, masks))
 
     def literal(name: str, files: list[str]) -> list[str]:
         """Files the workflow lists as inputs, which Snakemake reads as patterns: `{x}` in a
@@ -534,8 +537,8 @@ def _scene(
         p = local(k)
         if p is not None and p.is_file():
             query_inputs += literal(k, [str(p.resolve())])
-    for prompt in prompts:
-        literal("res_masks", prompt.masks)
+    for job in prompts:
+        literal("res_masks", job.masks)
     return SceneJob(
         name, node.line, scene_args, inputs, extract_args, query_args, index_bundle, options,
         option_values, prompts, extract_inputs, query_inputs, index_parts or 1,

@@ -28,7 +28,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Annotated
 
-from stages.batch.config import Batch, Prompt, SceneJob
+from stages.batch.config import Batch, PromptJob, SceneJob
 from stages.core.artifacts import write_json
 from stages.core.errors import GoiError
 from stages.core.files import check_out_dir, make_dir, output_lock
@@ -279,8 +279,9 @@ def _missing_intermediates(out: Path, batch: Batch) -> list[str]:
     return targets
 
 
-def _answer(out: Path, scene: SceneJob, p: Prompt) -> Path:
-    return out / scene.name / "prompts" / p.key / p.key / "selection.h5"
+def _answer(out: Path, scene: SceneJob, p: PromptJob) -> Path:
+    name = p.prompt.name
+    return out / scene.name / "prompts" / name / name / "selection.h5"
 
 
 def _stamps(out: Path, batch: Batch) -> dict[Path, tuple[int, int, int]]:

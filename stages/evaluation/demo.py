@@ -23,7 +23,7 @@ from stages.evaluation.metrics import image_scores, mean_scores
 from stages.evaluation.report import esc, rel, res_row, write_page
 from stages.evaluation.room import Prompt, load_prompts
 from stages.models.bundle import load_bundle
-from stages.query.lifting import LiftParams
+from stages.query.lift_math import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryResult, QueryRun, run_query
 from stages.query.prompts import safe_name, view_file_name
@@ -158,14 +158,13 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
             scene_dir / "text_embeddings.json",
             run.bundle,
             None if run.bundle else scene_dir / "res",
-            prompt.id,
-            run.res_index,
+            res_index=run.res_index,
         )
         both = [
             run_query(
                 scene,
                 field_path,
-                prompt.text,
+                prompt.query,
                 sources,
                 HyperplaneParams(),
                 QueryParams(),

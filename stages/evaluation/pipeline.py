@@ -52,8 +52,8 @@ from stages.evaluation.variants import (
 from stages.evaluation.worst import add_against_exact, add_worst_prompts
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.hyperplanes import HyperplaneRun
-from stages.query.lifted import lifted_masks
-from stages.query.lifting import LiftParams
+from stages.query.lift_answer import lifted_masks
+from stages.query.lift_math import LiftParams
 from stages.query.osh import THRESHOLD, HyperplaneParams
 from stages.query.res import ResFiles, ResIndexed, ResModel, ResSource, checked_index
 from stages.render.rasterizer import Rasterizer
@@ -463,7 +463,7 @@ def _score(
 
 def _exact_answer(room: Room, rast: Rasterizer, test: set[str]) -> dict:
     """The 2D scores of the exact 3D answer: each prompt's target Gaussians rendered as goi
-    renders a selection (stages.query.lifted.lifted_masks). Thin parts that the scene's
+    renders a selection (stages.query.lift_answer.lifted_masks). Thin parts that the scene's
     Gaussians draw wider or narrower than the ground-truth pixels cost even this answer IoU,
     so a variant's 2D figures are read against it (the dev room's palm plant: 0.617)."""
     cams = {c.name: c for c in room.scene.views("test")}
@@ -608,7 +608,7 @@ def run_eval(
     if res is not None:
         if run.res_index is not None:
             raise GoiError("give one of --res-masks DIR or --res-index FILE (with --bundle)")
-        sources = {p.id: ResFiles(Path(res), p.id, p.text) for p in room.prompts}
+        sources = {p.id: ResFiles(Path(res), p.query) for p in room.prompts}
     if run.res_index is not None:
         index, ib = checked_index(Path(run.res_index), bundle, room.scene)
         sources = {p.id: ResIndexed(index, ib, p.text, room.scene) for p in room.prompts}
@@ -712,7 +712,7 @@ def run_eval(
         source = sources[prompt.id]
         views = [v for v in prompt.test_views if v in test]
         gts = {v: room.ground_truth(prompt, v) for v in views}
-        question = Question(prompt.text, text, source, views, train, hp, lp, planes, p.seed)
+        question = Question(prompt.query, text, source, views, train, hp, lp, planes, p.seed)
         for variant in variants:
             t0 = time.perf_counter()
             pred = models.predict(variant, question)

@@ -8,12 +8,14 @@ gaussian_ids.npy (the instance of every Gaussian, for the 3D IoU).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
 from stages.core.errors import GoiError
 from stages.core.files import read_json, regular_file
+from stages.query import prompts
 from stages.query.prompts import check_plain_name, check_prompt, load_text_embeddings
 from stages.scene.images import read_mask
 from stages.scene.scene import Scene, load_scene
@@ -26,6 +28,11 @@ class Prompt:
     targets: list[int]
     test_views: list[str]
     kind: str
+
+    @cached_property
+    def query(self) -> prompts.Prompt:
+        """The prompt as goi query takes it (its text, and its id naming its RES masks)."""
+        return prompts.Prompt(self.text, self.id)
 
 
 def load_prompts(room: Path) -> list[Prompt]:

@@ -8,7 +8,7 @@
 and goi's added mode (not in the paper):
 
   lifted        TFCC field + OSH + the RES masks of several views lifted onto the Gaussians
-                (stages.query.lifted): every mask file of the prompt, or K views chosen by goi
+                (stages.query.lift_answer): every mask file of the prompt, or K views chosen by goi
                 with the room's mask files standing in for a RES model; masks are rendered
                 from the 3D selection
   lifted_fieldless  the same views' RES masks lifted, without any field (no features,
@@ -31,10 +31,11 @@ import numpy as np
 
 from stages.core.errors import warn
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
-from stages.query.lifted import MaskSource, lift_prompt, lifted_masks, view_visibility
-from stages.query.lifting import LiftParams, vote_share
+from stages.query.lift_answer import MaskSource, lift_prompt, lifted_masks, view_visibility
+from stages.query.lift_math import LiftParams, vote_share
 from stages.query.masks import mask_of
 from stages.query.osh import Counts, HyperplaneParams, fit_osh, probability, threshold_plane
+from stages.query.prompts import Prompt
 from stages.query.res import NothingFound, ResFiles, ResSource, choose_views
 from stages.query.selection import plane_probability, select
 from stages.render.rasterizer import Rasterizer
@@ -136,7 +137,7 @@ class Question:
     """One prompt as each variant is asked it: the prompt, its embedding, where its RES masks
     come from and the test views to answer on; with the run's training views and settings."""
 
-    prompt: str
+    prompt: Prompt
     text: np.ndarray  # [D] the prompt's embedding
     source: ResSource
     views: list[str]  # the test views to answer on
@@ -164,7 +165,7 @@ def predict_lifted(
     if lp.res_views is not None and isinstance(source, ResFiles):
         src = RoomModel(source)
     text = q.text if with_field else None
-    ans = lift_prompt(renderer, q.train, src, q.prompt, text, q.hp, lp, visibility)
+    ans = lift_prompt(renderer, q.train, src, q.prompt.text, text, q.hp, lp, visibility)
     rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
     masks = lifted_masks(rast, ans.selected, [test_cams[v] for v in q.views])
     rec = ans.record(lp)
@@ -230,7 +231,9 @@ class TfccModel:
                 return Prediction(masks, none, {"fit_views": []}, none.astype(np.float32))
             info = _fit_record(plane.info, json.loads(plane.info["views"]))
         else:
-            plane = threshold_plane(q.prompt, q.text, self.field.unit_codebook(), q.hp.threshold)
+            plane = threshold_plane(
+                q.prompt.text, q.text, self.field.unit_codebook(), q.hp.threshold
+            )
         masks = {v: mask_of(plane, self.views[v]) for v in views}
         scores = plane_probability(self.field, plane, self.entry)
         return Prediction(masks, select(self.field, plane), info, scores)

@@ -23,7 +23,7 @@ from stages.core.files import refuse_inputs
 from stages.core.params import check_params
 from stages.core.report import SILENT, Report
 from stages.query.osh import Counts, Hyperplane, HyperplaneParams, count_pixels, fit_osh
-from stages.query.prompts import safe_name
+from stages.query.prompts import Prompt
 from stages.query.res import ResIndexed, ResModel, ResSource, choose_views, write_res_masks
 from stages.scene.cameras import Camera
 from stages.semantics.decode import SemanticRenderer
@@ -40,10 +40,10 @@ class HyperplaneRun:
     """Fit again even when the artifact already holds this prompt."""
 
 
-def res_masks_dir(out: Path, prompt: str) -> Path:
+def res_masks_dir(out: Path, prompt: Prompt) -> Path:
     """Where a fit writes the RES masks a model made for it: beside the hyperplanes artifact,
     in the prompt's own directory (the one `goi query` writes the prompt's outputs to)."""
-    return Path(out).parent / safe_name(prompt) / "res"
+    return Path(out).parent / prompt.name / "res"
 
 
 def wrote_res_masks(masks: ResSource, cached: bool) -> bool:
@@ -97,7 +97,7 @@ def _write(path: Path, planes: dict[str, Hyperplane], inputs: dict[str, str]) ->
         root = f.create_group("prompts", track_order=True)
         for prompt in sorted(planes):
             p = planes[prompt]
-            g = root.create_group(safe_name(prompt))
+            g = root.create_group(Prompt(prompt).name)  # the text read back: its stored name
             g.attrs["prompt"] = prompt
             g.attrs["b"] = float(p.b)
             for k, v in p.info.items():
@@ -112,7 +112,7 @@ def fit_hyperplane(
     renderer: SemanticRenderer,
     field_path: Path,
     cams: list[Camera],
-    prompt: str,
+    prompt: Prompt,
     text: np.ndarray,
     text_source: str,
     masks: ResSource,
@@ -131,7 +131,7 @@ def fit_hyperplane(
     field_sha = field_key(field_path)
     # The key covers every candidate mask file, so a hit needs no mask decoded at all.
     key = _fit_key(field_sha, text, masks.digest(masks.available(cams)), p)
-    old = existing.get(prompt)
+    old = existing.get(prompt.text)
     # a stored plane of another shape (a damaged or edited file) is refitted, never used
     n = renderer.field.codebook.shape[0]
     fits = old is not None and old.W.shape == text.shape and old.scores.size == n
@@ -161,13 +161,13 @@ def fit_hyperplane(
         "config": json.dumps(p.config(), sort_keys=True),
         **rec,
     }
-    plane = Hyperplane(prompt, W.astype(np.float32), b, scores, text.astype(np.float32), info)
+    plane = Hyperplane(prompt.text, W.astype(np.float32), b, scores, text.astype(np.float32), info)
     report.log(
         f"fitted on {', '.join(c.name for c, _ in chosen)}: IoU with the RES mask "
         f"{rec['res_iou_init']:.3f} -> {rec['res_iou']:.3f} in {rec['steps_run']} steps"
     )
-    planes = {k: v for k, v in existing.items() if k != prompt}
-    planes[prompt] = plane
+    planes = {k: v for k, v in existing.items() if k != prompt.text}
+    planes[prompt.text] = plane
     write_res_masks(masks, [c.name for c, _ in chosen], res_masks_dir(out, prompt))
     _write(out, planes, {"field": field_sha})
     return plane, False

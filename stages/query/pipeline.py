@@ -21,8 +21,8 @@ from stages.core.params import Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, res_masks_dir, wrote_res_masks
-from stages.query.lifted import LiftedAnswer, RefineParams
-from stages.query.lifting import LiftParams
+from stages.query.lift_answer import LiftedAnswer, RefineParams
+from stages.query.lift_math import LiftParams
 from stages.query.masks import (
     MODES,
     MaskParams,
@@ -32,7 +32,7 @@ from stages.query.masks import (
     render_masks,
 )
 from stages.query.osh import HyperplaneParams, threshold_plane
-from stages.query.prompts import check_prompt, safe_name, text_embedding
+from stages.query.prompts import Prompt, text_embedding
 from stages.query.res import NothingFound, res_source
 from stages.query.selection import Selection, select, write_selection
 from stages.render.rasterizer import Rasterizer
@@ -59,6 +59,7 @@ class PromptSources:
     (default subdirectory: the prompt's safe name)."""
     prompt_id: str | None = None
     """Subdirectory of --res-masks holding this prompt's masks."""
+    # (the command puts --prompt-id into its Prompt; the stages read Prompt.id)
     res_index: Path | None = None
     """RES index of the scene (goi index-res) made with --bundle: only the bundle's prompt
     side runs (seconds for every training view), on the scene's photos; --lift then lifts
@@ -102,7 +103,7 @@ class QueryResult:
 def _check_outputs(
     scene: Scene,
     field_path: Path | None,
-    prompt: str,
+    prompt: Prompt,
     sources: PromptSources,
     run: QueryRun,
     cams: list[Camera],
@@ -118,11 +119,11 @@ def _check_outputs(
         sources.res_masks,
         sources.res_index,
     ]
-    pdir = Path(run.out) / safe_name(prompt)
+    pdir = Path(run.out) / prompt.name
     check_mask_outputs(pdir / "masks", cams, True, True, inputs)
     files = [Path(run.out) / "hyperplanes.h5", pdir / "selection.h5"]
     if run.export != "none":
-        files.append(pdir / f"{safe_name(prompt)}.ply")
+        files.append(pdir / f"{prompt.name}.ply")
     for f in files:
         check_output_file(f, "--out")
     refuse_inputs({"--out": files}, inputs)
@@ -131,7 +132,7 @@ def _check_outputs(
 def run_query(
     scene: Scene,
     field_path: Path | None,
-    prompt: str,
+    prompt: Prompt,
     sources: PromptSources,
     hp: HyperplaneParams,
     qp: QueryParams,
@@ -141,9 +142,9 @@ def run_query(
     lp: LiftParams | None = None,
     refine: RefineParams | None = None,
 ) -> QueryResult:
-    """The query of one prompt. field_path None (with --lift) is the field-free lifted mode.
-    `refine`: on a RES index that grows, how the answer refines (stages.query.lifted)."""
-    prompt = check_prompt(prompt)
+    """The query of one prompt (checked, `Prompt.checked`). field_path None (with --lift) is
+    the field-free lifted mode. `refine`: on a RES index that grows, how the answer refines
+    (stages.query.lift_answer)."""
     lp = lp or LiftParams()
     refine = refine or RefineParams()
     for params in (hp, qp, run, lp, refine):
@@ -165,7 +166,7 @@ def run_query(
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
     renderer = renderer or SemanticRenderer(scene.gaussians, field)
     text, text_source = text_embedding(
-        prompt, field.codebook.shape[1], sources.text_embeddings, sources.bundle
+        prompt.text, field.codebook.shape[1], sources.text_embeddings, sources.bundle
     )
     cams = default_cameras(scene, run.views)  # checked before any work
     if run.export == "highlight":
@@ -181,7 +182,6 @@ def run_query(
         masks = res_source(
             sources.res_masks,
             sources.bundle,
-            sources.prompt_id,
             prompt,
             renderer.rast,
             sources.res_index,
@@ -206,9 +206,9 @@ def run_query(
         if wrote_res_masks(masks, cached):
             res_dir = res_masks_dir(out / "hyperplanes.h5", prompt)
     else:
-        plane = threshold_plane(prompt, text, field.unit_codebook(), hp.threshold)
+        plane = threshold_plane(prompt.text, text, field.unit_codebook(), hp.threshold)
         cached = True
-    pdir = out / safe_name(prompt)
+    pdir = out / prompt.name
     masks_written = render_masks(
         renderer, plane, cams, MaskParams(), MaskRun(out=pdir / "masks", force=True), report
     )
@@ -220,13 +220,13 @@ def run_query(
     ply = _export(scene, sel, prompt, qp.mode, run, pdir)
     n = int(sel.sum())
     info = dict(plane.info)
-    return QueryResult(prompt, pdir, cached, masks_written, sel_path, ply, n, info, res_dir)
+    return QueryResult(prompt.text, pdir, cached, masks_written, sel_path, ply, n, info, res_dir)
 
 
 def _empty_answer(
     scene: Scene,
     field_path: Path,
-    prompt: str,
+    prompt: Prompt,
     qp: QueryParams,
     run: QueryRun,
     cams: list[Camera],
@@ -234,17 +234,18 @@ def _empty_answer(
     report: Report,
 ) -> QueryResult:
     """The RES found nothing on any view: empty masks (with overlays), an empty selection."""
-    from stages.query.lifted_query import write_masks
+    from stages.query.lift_files import write_masks
 
-    pdir = Path(run.out) / safe_name(prompt)
+    pdir = Path(run.out) / prompt.name
     none = np.zeros(scene.gaussians.count, bool)
     written = write_masks(renderer.rast, none, cams, pdir / "masks", True, True, report)
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field_path)}
     sel_path = write_selection(
-        pdir / "selection.h5", none, prompt, qp.mode, scene.ply_digest(), inputs, force=True
+        pdir / "selection.h5", none, prompt.text, qp.mode, scene.ply_digest(), inputs, force=True
     )
     ply = _export(scene, none, prompt, qp.mode, run, pdir)
-    return QueryResult(prompt, pdir, False, written, sel_path, ply, 0, {"res": "found nothing"})
+    info = {"res": "found nothing"}
+    return QueryResult(prompt.text, pdir, False, written, sel_path, ply, 0, info)
 
 
 def check_field_free(lp: LiftParams, sources: PromptSources) -> None:
@@ -288,7 +289,7 @@ def open_growing(sources: PromptSources, scene: Scene, refine: RefineParams, rep
 def _run_lifted(
     scene: Scene,
     field_path: Path | None,
-    prompt: str,
+    prompt: Prompt,
     text: np.ndarray | None,
     sources: PromptSources,
     hp: HyperplaneParams,
@@ -299,24 +300,24 @@ def _run_lifted(
     report: Report,
     refine: RefineParams,
 ) -> QueryResult:
-    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lifted);
+    """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lift_answer);
     a bare Rasterizer (no field) gives the field-free answer. On a RES index that grows, with
     --progressive, each answer before the last is written as the last is (masks, selection,
     PLY), in place, and the views indexed are published when the query ends, however it
     ends."""
-    from stages.query.lifted_query import answer_prompt
+    from stages.query.lift_files import answer_prompt
 
     rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
     grow = open_growing(sources, scene, refine, report)
-    pdir = Path(run.out) / safe_name(prompt)
+    pdir = Path(run.out) / prompt.name
 
     def write(ans: LiftedAnswer, done: int = 0, total: int = 0) -> QueryResult:
         from stages.core.staging import current_stage
-        from stages.query.lifted_query import write_lifted_selection, write_masks
+        from stages.query.lift_files import write_lifted_selection, write_masks
 
         written = write_masks(rast, ans.selected, cams, pdir / "masks", True, True, report)
         sel_path = write_lifted_selection(
-            pdir / "selection.h5", ans, scene, field_path, lp, True, prompt
+            pdir / "selection.h5", ans, scene, field_path, lp, True, prompt.text
         )
         ply = _export(scene, ans.selected, prompt, "lifted", run, pdir)
         info = {"views": ans.views, "chosen_by": ans.chosen_by}
@@ -329,16 +330,15 @@ def _run_lifted(
                 f"Gaussians): {sel_path}; refining"
             )
         n = int(ans.selected.sum())
-        return QueryResult(prompt, pdir, False, written, sel_path, ply, n, info)
+        return QueryResult(prompt.text, pdir, False, written, sel_path, ply, n, info)
 
     try:
         masks = res_source(
-            sources.res_masks, sources.bundle, sources.prompt_id, prompt, rast,
-            sources.res_index, scene, grow,
+            sources.res_masks, sources.bundle, prompt, rast, sources.res_index, scene, grow,
         )  # fmt: skip
         on_answer = write if refine.progressive else None
         ans = answer_prompt(
-            scene, renderer, prompt, text, masks, hp, lp, report, refine=refine,
+            scene, renderer, prompt.text, text, masks, hp, lp, report, refine=refine,
             on_answer=on_answer,
         )  # fmt: skip
     finally:
@@ -348,7 +348,7 @@ def _run_lifted(
 
 
 def _export(
-    scene: Scene, sel: np.ndarray, prompt: str, mode: str, run: QueryRun, pdir: Path
+    scene: Scene, sel: np.ndarray, prompt: Prompt, mode: str, run: QueryRun, pdir: Path
 ) -> Path | None:
     """The PLY the query exports (`run.export`) for the selection sel [G] bool, if any."""
     if run.export == "none" or (not sel.any() and run.export == "subset"):
@@ -357,12 +357,12 @@ def _export(
         invert=run.export == "invert",
         highlight=run.color if run.export == "highlight" else None,
     )
-    selection = Selection(sel, prompt, mode, scene.ply_digest())
+    selection = Selection(sel, prompt.text, mode, scene.ply_digest())
     ply, _ = export_ply(
         scene.gaussians,
         selection,
         scene.ply_digest(),
         edit,
-        PlyExportRun(pdir / f"{safe_name(prompt)}.ply", force=True),
+        PlyExportRun(pdir / f"{prompt.name}.ply", force=True),
     )
     return ply

@@ -1,8 +1,11 @@
-"""Prompts: checking them, their embeddings, and the file names made from prompts and views.
+"""Prompts: the one value a command makes of a prompt (`Prompt`), checking them, their
+embeddings, and the file names made from prompts and views.
 
 A prompt or a view name never becomes a path as it is: `safe_name` keeps a readable slug and
 adds a hash of the full text, so names stay inside the output directory, stay short, and two
 different texts never share a file. The original text is kept in the artifacts and reports.
+A prompt's file name is made once, with its `Prompt`, where a command starts; the stages take
+the `Prompt` and never re-derive a name from the text.
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import re
 import unicodedata
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +77,27 @@ def safe_name(text: str, max_slug: int = 40) -> str:
 def view_file_name(view: str) -> str:
     """A view's name as a file stem: itself when plain (v000, IMG_12.JPG), else safe_name."""
     return view if _PLAIN.fullmatch(view) and ".." not in view else safe_name(view)
+
+
+@dataclass(frozen=True)
+class Prompt:
+    """One prompt, made once where a command starts (`Prompt.checked`) and passed down."""
+
+    text: str
+    """The prompt, checked (`check_prompt`): what is embedded, fitted and recorded."""
+    id: str | None = None
+    """Its id, when it has one (--prompt-id, a room's or a batch's prompt id): the subdirectory
+    of the RES mask directory that holds its masks."""
+    name: str = field(init=False, compare=False)
+    """Its file name (`safe_name` of the text): OUT/<name>/, <name>.ply, its HDF5 group."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "name", safe_name(self.text))
+
+    @classmethod
+    def checked(cls, text: str, id: str | None = None, option: str = "--prompt") -> Prompt:
+        """The prompt of `text` as a command takes it: checked, blanks around it removed."""
+        return cls(check_prompt(text, option), id)
 
 
 def load_text_embeddings(path: Path) -> dict[str, np.ndarray]:

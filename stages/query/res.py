@@ -20,7 +20,7 @@ from stages.core.files import make_dir
 from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.osh import HyperplaneParams
-from stages.query.prompts import check_plain_name, safe_name, view_file_name
+from stages.query.prompts import Prompt, check_plain_name, view_file_name
 from stages.query.res_index import (
     GrowingIndex,
     ResIndex,
@@ -44,13 +44,14 @@ class ResFiles:
 
     every_view = True  # a file costs nothing: the lifted mode lifts them all by default
 
-    def __init__(self, root: Path, prompt_id: str | None, prompt: str):
+    def __init__(self, root: Path, prompt: Prompt):
         root = Path(root)
+        prompt_id = prompt.id
         if prompt_id is not None:
             check_plain_name(prompt_id, "--prompt-id", "a subdirectory of --res-masks")
         if not root.is_dir():
             raise GoiError(f"--res-masks: {root} is not a directory")
-        candidates = [root / prompt_id] if prompt_id else [root / safe_name(prompt), root]
+        candidates = [root / prompt_id] if prompt_id else [root / prompt.name, root]
         for c in candidates:
             if c.is_dir() and any(c.glob("*.png")):
                 self.dir = c
@@ -172,7 +173,7 @@ class ResGrowing(ResIndexed):
     stages.query.res_index.GrowingIndex): `available` are the views the index holds, which
     cost the prompt side; `mask` of any other training view first indexes it (the bundle's
     image side on its photo, kept in the index), and it costs the same from then on. The
-    lifted route decides which views to add (stages.query.lifted)."""
+    lifted route decides which views to add (stages.query.lift_answer)."""
 
     grows = True
 
@@ -256,8 +257,7 @@ def write_res_masks(source: ResSource, views: list[str], directory: Path) -> lis
 def res_source(
     res_masks: Path | None,
     bundle: Path | None,
-    prompt_id: str | None,
-    prompt: str,
+    prompt: Prompt,
     rast: Rasterizer,
     res_index: Path | None = None,
     scene: Scene | None = None,
@@ -269,14 +269,14 @@ def res_source(
     if res_masks is not None and res_index is not None:
         raise GoiError("give one of --res-masks DIR or --res-index FILE, not both")
     if res_masks is not None:
-        return ResFiles(res_masks, prompt_id, prompt)
+        return ResFiles(res_masks, prompt)
     if res_index is not None:
         assert scene is not None
         if grow is not None:
-            return ResGrowing(grow, grow.bundle, prompt, scene)
-        return open_res_index(res_index, bundle, scene, prompt)
+            return ResGrowing(grow, grow.bundle, prompt.text, scene)
+        return open_res_index(res_index, bundle, scene, prompt.text)
     if bundle is not None:
-        return ResModel(bundle, prompt, rast)
+        return ResModel(bundle, prompt.text, rast)
     raise GoiError(
         "fitting a hyperplane needs RES masks: --res-masks DIR, or --bundle DIR with a RES "
         "(res or grounded; or use --mode threshold where there is one)"

@@ -8,7 +8,7 @@ declares (`Bundle.res_image_side_spec`: float16 where exact enough). A query the
 `Bundle.res_prompt` once and `Bundle.res_from_image_side` per view.
 
 An index grows: it may hold some of the scene's training views (schema 1.1). A lifted query
-indexes the views it needs and keeps them (`GrowingIndex`, stages.query.lifted), and
+indexes the views it needs and keeps them (`GrowingIndex`, stages.query.lift_answer), and
 `goi index-res` fills in the rest in `index_order`, so an index cut off at any point holds
 views that see the scene from many sides. Views are added by one process at a time
 (`IndexWriter`): it holds `<out>.lock` (a second one waits up to --wait seconds, then is

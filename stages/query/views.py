@@ -11,7 +11,7 @@ submodular: once a part of S is seen enough, views that show it again gain nothi
 view looks at S from another side. When S is covered everywhere, the views that add the most
 log-visibility (diminishing, never saturating) break the tie.
 
-On a RES index that grows (stages.query.lifted), the views are also chosen apart:
+On a RES index that grows (stages.query.lift_answer), the views are also chosen apart:
 
     v* = argmax_v  g_v / max_u g_u + APART * d_v / max_u d_u
 

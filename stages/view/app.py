@@ -314,7 +314,7 @@ class Page:
                 if first is not None:
                     label = f"the field, first: {first.label}"
                     self.show(
-                        Answer(prompt, first.route, first.selected, label, False, first.plane)
+                        Answer(first.prompt, first.route, first.selected, label, False, first.plane)
                     )
             ans = s.answer(prompt, route, control)
             control.check()
@@ -346,7 +346,7 @@ class Page:
         answers = self.app.session.history()
         keys = {}
         for a in answers:
-            keys[f"{a.prompt} · {ROUTE_NAMES[a.route]} · {a.count:,}"] = a.key
+            keys[f"{a.prompt.text} · {ROUTE_NAMES[a.route]} · {a.count:,}"] = a.key
         with self.lock:
             self.history_keys = keys
             current = self.history_box.value
@@ -367,7 +367,7 @@ class Page:
             done = note if ans.final else " (refining...)"
             self._say(
                 f"<b>{ans.count:,}</b> Gaussians &middot; <span>{_e(ans.label)}</span>{done}<br>"
-                f"<i>{_e(ans.prompt)}</i> &middot; {ans.seconds:.2f} s"
+                f"<i>{_e(ans.prompt.text)}</i> &middot; {ans.seconds:.2f} s"
             )
             if ans.final:
                 self.bar.visible = False

@@ -35,13 +35,13 @@ from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, read_hyperplanes
-from stages.query.lifted import LiftedAnswer, RefineParams
-from stages.query.lifted_query import answer_prompt, write_lifted_selection, write_masks
-from stages.query.lifting import LiftParams
+from stages.query.lift_answer import LiftedAnswer, RefineParams
+from stages.query.lift_files import answer_prompt, write_lifted_selection, write_masks
+from stages.query.lift_math import LiftParams
 from stages.query.masks import MaskParams, MaskRun, mask_of, overlay, render_masks
 from stages.query.osh import THRESHOLD, Hyperplane, HyperplaneParams, threshold_plane
 from stages.query.pipeline import PromptSources
-from stages.query.prompts import check_prompt, safe_name, text_embedding
+from stages.query.prompts import Prompt, check_prompt, text_embedding
 from stages.query.res import (
     NothingFound,
     ResFiles,
@@ -101,7 +101,7 @@ class ViewRun:
 class Answer:
     """A prompt's answer on one route (or a provisional step of it)."""
 
-    prompt: str
+    prompt: Prompt
     route: str
     selected: np.ndarray  # [G] bool
     label: str  # what answered, for the page: "the paper's OSH (cached)", "lifted, 12 of 48 views"
@@ -118,7 +118,7 @@ class Answer:
 
     @property
     def key(self) -> tuple[str, str]:
-        return (self.prompt, self.route)
+        return (self.prompt.text, self.route)
 
 
 class Cancelled(Exception):
@@ -322,6 +322,11 @@ class ViewSession:
             raise GoiError(f"prompt: {len(t)} characters; the viewer takes at most {MAX_PROMPT}")
         return t
 
+    def prompt(self, text: str) -> Prompt:
+        """The page's prompt, checked, with its id from --prompts (its RES mask subdirectory)."""
+        t = self.check_prompt(text)
+        return Prompt(t, self.prompt_ids.get(t))
+
     def text(self, prompt: str) -> tuple[np.ndarray, str]:
         """The prompt's embedding and where it came from, as goi select makes it."""
         assert self.field is not None
@@ -346,16 +351,16 @@ class ViewSession:
             )
         return vec.astype(np.float32), f"bundle:{self.bundle.name}"
 
-    def res(self, prompt: str, rast: Rasterizer) -> ResSource:
+    def res(self, prompt: Prompt, rast: Rasterizer) -> ResSource:
         """The prompt's RES masks, as goi select takes them (mask files in the prompt's own
         subdirectory, named by --prompts, else the RES index, else the bundle's RES)."""
         if self.sources.res_masks is not None:
-            return ResFiles(self.sources.res_masks, self.prompt_ids.get(prompt), prompt)
+            return ResFiles(self.sources.res_masks, prompt)
         if self.index is not None:
             assert self.bundle is not None
-            return ResGrowing(self.index, self.bundle, prompt, self.scene)
+            return ResGrowing(self.index, self.bundle, prompt.text, self.scene)
         if self.bundle is not None and self.bundle.has_res:
-            return ResModel(self.bundle, prompt, rast)
+            return ResModel(self.bundle, prompt.text, rast)
         raise GoiError(
             "no RES source: give --res-masks, --res-index with --bundle, or a bundle with a RES"
         )
@@ -378,29 +383,30 @@ class ViewSession:
             self._field_sha_value = sha256_file(self.field_path)
         return self._field_sha_value
 
-    def field_answer(self, prompt: str) -> Answer | None:
+    def field_answer(self, text: str) -> Answer | None:
         """The field's answer, at once: the prompt's cached OSH, else the fixed-threshold
         plane (None without a field or a text embedding)."""
         if self.field is None or not self.has_text:
             return None
+        prompt = self.prompt(text)
         t0 = time.perf_counter()
-        plane = self.cached_plane(prompt)
+        plane = self.cached_plane(prompt.text)
         if plane is not None:
             route, label = "osh", "the paper's OSH (cached)"
         else:
-            text, _ = self.text(prompt)
-            plane = threshold_plane(prompt, text, self.field.unit_codebook(), THRESHOLD)
+            emb, _ = self.text(prompt.text)
+            plane = threshold_plane(prompt.text, emb, self.field.unit_codebook(), THRESHOLD)
             route, label = "threshold", "fixed threshold"
         sel = select(self.field, plane, self.entry)
         return Answer(prompt, route, sel, label, True, plane, seconds=time.perf_counter() - t0)
 
-    def answer(self, prompt: str, route: str, control: Control | None = None) -> Answer:
+    def answer(self, text: str, route: str, control: Control | None = None) -> Answer:
         """The route's answer (see the module doc); partial answers go to control.partial."""
         control = control or Control()
         why = self.routes().get(route, f"unknown route {route!r}")
         if why is not None:
             raise GoiError(f"route {route}: {why}")
-        prompt = self.check_prompt(prompt)
+        prompt = self.prompt(text)
         t0 = time.perf_counter()
         report = ControlReport(control)
         if route in ("osh", "threshold"):
@@ -414,11 +420,11 @@ class ViewSession:
             self._history[ans.key] = ans
         return ans
 
-    def _paper_answer(self, prompt: str, route: str, report: Report) -> Answer:
+    def _paper_answer(self, prompt: Prompt, route: str, report: Report) -> Answer:
         assert self.field is not None and self.renderer is not None and self.field_path
-        text, text_source = self.text(prompt)
+        text, text_source = self.text(prompt.text)
         if route == "threshold":
-            plane = threshold_plane(prompt, text, self.field.unit_codebook(), THRESHOLD)
+            plane = threshold_plane(prompt.text, text, self.field.unit_codebook(), THRESHOLD)
             return Answer(
                 prompt, route, select(self.field, plane, self.entry), "fixed threshold", True, plane
             )
@@ -436,12 +442,12 @@ class ViewSession:
         return Answer(prompt, route, select(self.field, plane, self.entry), label, True, plane)
 
     def _lifted_answer(
-        self, prompt: str, route: str, control: Control, report: Report, t0: float
+        self, prompt: Prompt, route: str, control: Control, report: Report, t0: float
     ) -> Answer:
         renderer: SemanticRenderer | Rasterizer
         if route == "lifted":
             assert self.renderer is not None
-            renderer, (text, _) = self.renderer, self.text(prompt)
+            renderer, (text, _) = self.renderer, self.text(prompt.text)
         else:
             renderer, text = self.rast, None
         masks = self.res(prompt, self.rast)
@@ -460,7 +466,7 @@ class ViewSession:
 
         every = RefineParams(all_views=True)  # an index that lacks views: indexed as it refines
         try:
-            ans = answer_prompt(self.scene, renderer, prompt, text, masks, self.hp, self.lp,
+            ans = answer_prompt(self.scene, renderer, prompt.text, text, masks, self.hp, self.lp,
                                 report, partial=partial, refine=every)  # fmt: skip
         finally:
             if self.index is not None:
@@ -501,7 +507,7 @@ class ViewSession:
     # -- exports --------------------------------------------------------------------------
 
     def answer_dir(self, answer: Answer) -> Path:
-        return self.out / safe_name(answer.prompt) / answer.route
+        return self.out / answer.prompt.name / answer.route
 
     def export(self, answer: Answer, what: str, color: str = "red") -> list[Path]:
         """Write one export of a final answer under OUT/<prompt>/<route>/, atomically, with
@@ -511,7 +517,7 @@ class ViewSession:
         if not answer.final:
             raise GoiError("export: the answer is still being refined; wait for it to finish")
         d = self.answer_dir(answer)
-        name = safe_name(answer.prompt)
+        name = answer.prompt.name
         mode = _mode(answer)
         if what == "selection":
             files = [d / "selection.h5"]
@@ -540,7 +546,7 @@ class ViewSession:
                 )
                 if what == "subset" and not answer.selected.any():
                     raise GoiError("export: the answer selects no Gaussian; there is no subset")
-                sel = Selection(answer.selected, answer.prompt, mode, self.scene.ply_digest())
+                sel = Selection(answer.selected, answer.prompt.text, mode, self.scene.ply_digest())
                 export_ply(self.scene.gaussians, sel, self.scene.ply_digest(), edit,
                            PlyExportRun(files[0], force=True))  # fmt: skip
             for f in files:
@@ -551,12 +557,12 @@ class ViewSession:
     def _write_selection(self, answer: Answer, path: Path, mode: str) -> None:
         if answer.lifted is not None:
             write_lifted_selection(path, answer.lifted, self.scene, self.field_path, self.lp,
-                                   True, answer.prompt)  # fmt: skip
+                                   True, answer.prompt.text)  # fmt: skip
             return
         inputs = {"ply": self.scene.ply_digest()}
         if self.field_path is not None:
             inputs.update(input_digest("field", self.field_path))
-        write_selection(path, answer.selected, answer.prompt, mode, self.scene.ply_digest(),
+        write_selection(path, answer.selected, answer.prompt.text, mode, self.scene.ply_digest(),
                         inputs, force=True)  # fmt: skip
 
     def _write_masks(self, answer: Answer, d: Path, cams: list[Camera]) -> None:
@@ -629,7 +635,7 @@ def _mode(answer: Answer) -> str:
 def describe(answer: Answer) -> dict:
     """A JSON-able summary of an answer, for the page and the benchmarks."""
     return {
-        "prompt": answer.prompt,
+        "prompt": answer.prompt.text,
         "route": answer.route,
         "label": answer.label,
         "count": answer.count,

@@ -4,9 +4,17 @@ import numpy as np
 import pytest
 
 from stages.core.errors import GoiError, GoiWarning
-from stages.query.lifted import lift_prompt, lifted_masks, view_evidence, view_visibility
-from stages.query.lifting import Lifted, LiftParams, ViewEvidence, fuse, view_confidence, vote_share
+from stages.query.lift_answer import lift_prompt, lifted_masks, view_evidence, view_visibility
+from stages.query.lift_math import (
+    Lifted,
+    LiftParams,
+    ViewEvidence,
+    fuse,
+    view_confidence,
+    vote_share,
+)
 from stages.query.osh import HyperplaneParams, probability
+from stages.query.prompts import Prompt
 from stages.query.res import ResFiles
 from stages.query.views import next_view, provisional
 from stages.render.lift import selection_mask
@@ -176,7 +184,7 @@ def test_lift_prompt_from_mask_files(room):
     d = room["dir"] / "res" / "p"
     names = [c.name for c in room["cams"][::2]]
     _write_masks(room, d, target, names)
-    src = ResFiles(d.parent, "p", "the box")
+    src = ResFiles(d.parent, Prompt("the box", "p"))
     hp = HyperplaneParams()
     ans = lift_prompt(
         SemanticRenderer(room["g"], field),
@@ -219,7 +227,7 @@ def test_lift_prompt_bad_inputs(room, tmp_path):
     import cv2
 
     cv2.imwrite(str(d / "nope.png"), np.zeros((72, 96), np.uint8))
-    src = ResFiles(d.parent, "p", "x")
+    src = ResFiles(d.parent, Prompt("x", "p"))
     with pytest.raises(GoiError, match="none of the 16 training views"):
         lift_prompt(
             SemanticRenderer(room["g"], field),
@@ -255,7 +263,7 @@ def test_lift_prompt_without_a_field(room):
     d = room["dir"] / "res_free" / "p"
     names = [c.name for c in room["cams"][::2]]
     _write_masks(room, d, target, names)
-    src = ResFiles(d.parent, "p", "the box")
+    src = ResFiles(d.parent, Prompt("the box", "p"))
     lp = LiftParams(lift=True)
     ans = lift_prompt(rast, room["cams"], src, "the box", None, HyperplaneParams(), lp)
     assert ans.plane is None and ans.views == names
@@ -283,7 +291,7 @@ def test_a_res_that_finds_nothing_anywhere_gives_an_empty_answer(room):
     d = room["dir"] / "res_nothing" / "p"
     names = [c.name for c in room["cams"][::4]]
     _write_masks(room, d, np.zeros(ids.size, bool), names)
-    src = ResFiles(d.parent, "p", "a unicorn")
+    src = ResFiles(d.parent, Prompt("a unicorn", "p"))
     text = field.unit_codebook()[TARGET]  # the text alone would select the target's entry
     for renderer, t in ((SemanticRenderer(room["g"], field), text), (room["rast"], None)):
         with pytest.warns(GoiWarning, match="found nothing for 'a unicorn' on any of the 4 views"):
@@ -354,7 +362,7 @@ def _one_view(S1, S0):
 
 
 def test_guard_fuses_a_collapsed_vote_with_the_field():
-    from stages.query.lifting import guard
+    from stages.query.lift_math import guard
 
     n = 3000
     S1, S0 = np.zeros(n), np.full(n, 10.0)
@@ -383,7 +391,7 @@ def test_guard_does_not_fuse_a_field_that_over_selects_what_the_masks_reject():
     field adds carries 0.16 of the vote's claim, and stays out. A vote that lost a thin part
     the masks graze (500 Gaussians kept; the field adds 2,000 the masks put 25% in, 1.1 times
     the vote's claim) is fused."""
-    from stages.query.lifting import guard
+    from stages.query.lift_math import guard
 
     n = 4000
     S1, S0 = np.zeros(n), np.full(n, 10.0)
@@ -408,7 +416,7 @@ def test_guard_does_not_fuse_what_only_some_views_take_in_whole():
     views that differ: under eroded masks every view grazes them (25% each) and they are
     fused; when one view in four takes them in whole and the rest leave them out (a box over
     the object and its table), the typical view says out and the vote stands."""
-    from stages.query.lifting import accumulate, guard, typical_share
+    from stages.query.lift_math import accumulate, guard, typical_share
 
     n, views = 4000, 8
     obj, added = np.arange(n) < 1400, (np.arange(n) >= 1400) & (np.arange(n) < 3400)
@@ -438,7 +446,7 @@ def test_guard_does_not_fuse_what_only_some_views_take_in_whole():
 
 
 def test_thin_parts_of_an_object_the_masks_mostly_agree_on():
-    from stages.query.lifting import decide
+    from stages.query.lift_math import decide
 
     # an object (entry 1): a body the masks hold (90% in) and thin legs erosion cut to 30%;
     # a floor (entry 0) whose rim next to the legs the masks touch (30% in) too
@@ -472,7 +480,7 @@ def test_guard_yields_to_a_typical_view_that_puts_the_additions_out():
     empty masks on the many views that show a sliver of it) is fused: an empty mask puts the
     vote and the additions out alike, so the typical view is taken over the views that
     answer."""
-    from stages.query.lifting import accumulate, guard
+    from stages.query.lift_math import accumulate, guard
 
     n, views = 6000, 9
     obj = np.arange(n) < 1000  # the rest (5,000) is the support

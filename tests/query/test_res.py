@@ -8,6 +8,7 @@ import pytest
 
 from stages.core.errors import GoiError
 from stages.query.osh import HyperplaneParams
+from stages.query.prompts import Prompt
 from stages.query.res import ResFiles, choose_views
 from stages.scene.cameras import Camera
 
@@ -23,7 +24,7 @@ def test_res_masks_resized_with_a_warning_and_empty_ones_skipped(tmp_path, recwa
     small[5:10, 5:10] = 255
     cv2.imwrite(str(d / "a.png"), small)
     cv2.imwrite(str(d / "b.png"), np.zeros((30, 40), np.uint8))
-    src = ResFiles(tmp_path / "res", "p1", "x")
+    src = ResFiles(tmp_path / "res", Prompt("x", "p1"))
     chosen = choose_views(src, [_cam("a"), _cam("b")], HyperplaneParams())
     assert [c.name for c, _ in chosen] == ["a"] and chosen[0][1].shape == (30, 40)
     assert chosen[0][1].sum() == 100
@@ -34,4 +35,4 @@ def test_res_masks_resized_with_a_warning_and_empty_ones_skipped(tmp_path, recwa
     with pytest.raises(GoiError, match="every RES mask of this prompt is empty"):
         choose_views(src, [_cam("a"), _cam("b")], HyperplaneParams())
     with pytest.raises(GoiError, match="no <view>.png masks"):
-        ResFiles(tmp_path / "res", "p2", "x")
+        ResFiles(tmp_path / "res", Prompt("x", "p2"))

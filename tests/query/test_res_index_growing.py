@@ -15,11 +15,11 @@ import pytest
 
 from goi_cli.main import main
 from stages.core.files import output_lock
-from stages.query.lifted import RefineParams
-from stages.query.lifting import LiftParams
+from stages.query.lift_answer import RefineParams
+from stages.query.lift_math import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryRun, run_query
-from stages.query.prompts import safe_name
+from stages.query.prompts import Prompt, safe_name
 from stages.query.res_index import check_values, load_res_index
 from stages.query.selection import load_selection
 from stages.scene.scene import load_scene
@@ -140,7 +140,7 @@ def test_the_progressive_answer_is_rewritten_as_views_are_indexed(
 
     run = QueryRun(out=tmp_path / "q", export="none")
     lp = LiftParams(lift=True)
-    r = run_query(scene, None, PROMPT, src, HyperplaneParams(), QueryParams(), run,
+    r = run_query(scene, None, Prompt(PROMPT), src, HyperplaneParams(), QueryParams(), run,
                   report=Recorder(), lp=lp,
                   refine=RefineParams(progressive=True, refine_every=1))  # fmt: skip
     assert seen == [{"n_views": k, "of": 4, "final": False} for k in (1, 2, 3)]

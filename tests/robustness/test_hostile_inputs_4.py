@@ -724,7 +724,7 @@ def test_a_block_scalar_prompt_is_named_as_goi_query_names_it(world, tmp_path): 
         "    prompts:\n      - text: |\n          box\n"
     )
     (p,) = load_batch(cfg).scenes[0].prompts
-    assert (p.text, p.key) == ("box", safe_name("box"))
+    assert (p.prompt.text, p.prompt.name) == ("box", safe_name("box"))
 
 
 def test_a_safetensors_error_while_loading_is_one_line(tmp_path, monkeypatch):

@@ -71,7 +71,7 @@ def test_two_tabs_asking_at_once_get_their_own_answers(served, session):
     a.ask("object 1")
     b.ask("object 2")
     ans_a, ans_b = _final(a), _final(b)
-    assert (ans_a.prompt, ans_b.prompt) == ("object 1", "object 2")
+    assert (ans_a.prompt.text, ans_b.prompt.text) == ("object 1", "object 2")
     np.testing.assert_array_equal(ans_a.selected, session.cached("object 1", "lifted").selected)
     np.testing.assert_array_equal(ans_b.selected, session.cached("object 2", "lifted").selected)
     assert not np.array_equal(ans_a.selected, ans_b.selected)
@@ -88,9 +88,9 @@ def test_a_new_prompt_supersedes_the_pages_unfinished_one(served, session):
     a.ask("object 3")
     a.ask("object 4")  # at once: the first is cancelled before or during its lift
     final = _final(a)
-    assert final.prompt == "object 4"
+    assert final.prompt.text == "object 4"
     time.sleep(0.5)
-    assert all(ans.prompt == "object 4" for _, ans in a.timeline if ans.final)
+    assert all(ans.prompt.text == "object 4" for _, ans in a.timeline if ans.final)
 
 
 @pytest.mark.slow

@@ -59,7 +59,7 @@ from stages.evaluation.report import overlay_pair, page_files_dir
 from stages.evaluation.room import Prompt, Room
 from stages.evaluation.variants import Answerers, Question, TfccModel
 from stages.query.hyperplanes import HyperplaneRun
-from stages.query.lifting import LiftParams
+from stages.query.lift_math import LiftParams
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import load_text_embeddings
 from stages.query.res import ResFiles, ResModel, ResSource
@@ -261,7 +261,7 @@ def run_benchmark(
     sources_of: list[dict[str, ResSource]] = []
     for s in scenes:
         if s.res is not None:
-            sources_of.append({q.id: ResFiles(s.res, q.id, q.text) for q in s.bench.queries})
+            sources_of.append({p.id: ResFiles(s.res, p.query) for p in s.room.prompts})
         else:
             sources_of.append({})
     work = Path(run.work or Path(run.out).with_suffix(".work"))
@@ -384,7 +384,7 @@ def _answer(
         text = s.room.embeddings[prompt.text]
         t0 = time.perf_counter()
         q = Question(
-            prompt.text, text, sources[prompt.id], prompt.test_views, train, hp, lp, planes, p.seed
+            prompt.query, text, sources[prompt.id], prompt.test_views, train, hp, lp, planes, p.seed
         )
         pred = models.predict(variant, q)
         timer.add(f"query_{variant}", time.perf_counter() - t0)

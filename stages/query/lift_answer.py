@@ -1,5 +1,6 @@
-"""The lifted query of one prompt: which views, their RES masks lifted onto the Gaussians, the
-OSH fitted on that evidence, the fused 3D selection, and masks rendered from it.
+"""Orchestrates one prompt's lifted answer: which views, their RES masks lifted onto the
+Gaussians, the OSH fitted on that evidence, the fused 3D selection, and masks rendered from it
+(no files: `stages.query.lift_files` writes them).
 
     answer = lift_prompt(renderer, train_cams, res_source, prompt, text, hp, lp)
     masks = lifted_masks(renderer.rast, answer.selected, cams)
@@ -8,7 +9,7 @@ Views: with mask files every file of the prompt is lifted by default (more views
 per-view RES errors), or K of them with --res-views K; when a RES model has to run, K views
 (8 by default) are chosen one at a time to cover the provisional selection from different sides
 (`stages.query.views`), and the selection is updated after each, so the next view looks where
-the answer still lacks evidence. The math is in `stages.query.lifting`.
+the answer still lacks evidence. The math is in `stages.query.lift_math`.
 
 On a RES index that grows (`--res-index` with its bundle, stages.query.res.ResGrowing) the
 views the index holds are cheap and are lifted first; when the answer should rest on more
@@ -37,7 +38,7 @@ import numpy as np
 from stages.core.errors import GoiError, warn
 from stages.core.params import AT_LEAST_1, Range, check_params
 from stages.core.report import SILENT, Report
-from stages.query.lifting import (
+from stages.query.lift_math import (
     DEFAULT_MODEL_VIEWS,
     Lifted,
     LiftParams,

@@ -1,6 +1,7 @@
-"""`goi query --lift` (and select / render-mask / fit-hyperplane with --lift): the lifted answer
-of a prompt written as the paper's mode writes its own: masks (rendered from the 3D selection)
-with overlays, the selection artifact (recording the views and evidence used), the PLY.
+"""The lifted mode's files, for the CLI and the viewer: `goi query --lift` (and select /
+render-mask / fit-hyperplane with --lift) writes a prompt's lifted answer as the paper's mode
+writes its own: masks (rendered from the 3D selection) with overlays, the selection artifact
+(recording the views and evidence used), the PLY.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from stages.core.artifacts import input_digest, write_png
 from stages.core.errors import GoiError, GoiWarning
 from stages.core.files import make_dir
 from stages.core.report import SILENT, Report
-from stages.query.lifted import (
+from stages.query.lift_answer import (
     LiftedAnswer,
     MaskSource,
     OnAnswer,
@@ -24,7 +25,7 @@ from stages.query.lifted import (
     lift_prompt,
     lifted_masks,
 )
-from stages.query.lifting import LiftParams
+from stages.query.lift_math import LiftParams
 from stages.query.masks import overlay
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import view_file_name

@@ -1,5 +1,6 @@
-"""Lifted queries as pure math: RES masks of several views voted onto the Gaussians, fused with
-the semantic field (arrays in, arrays out; the tile walks are in `stages.render.lift`).
+"""The lifted mode's math, arrays in and arrays out: RES masks of several views voted onto the
+Gaussians and fused with the semantic field (the tile walks are in `stages.render.lift`; one
+prompt's answer is orchestrated in `stages.query.lift_answer`, its files in `lift_files`).
 
 Per view v the walk gives each Gaussian i its evidence s1_v,i (blend weight on mask pixels) and
 s0_v,i (on the other pixels). An empty mask is evidence too: every Gaussian the view sees gets
