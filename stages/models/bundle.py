@@ -90,6 +90,12 @@ class Bundle:
         return str(self.root / MANIFEST)
 
     def digest(self) -> str:
+        """SHA-256 of the bundle's files, hashed once per load: a long-lived process (goi view,
+        a batch's prompts) asks for it on every prompt, and the files are hundreds of MB."""
+        return self._digest
+
+    @cached_property
+    def _digest(self) -> str:
         return sha256_files([p for p in self.root.rglob("*") if p.is_file()])
 
     @cached_property

@@ -70,7 +70,7 @@ CONFIDENCE_PRIOR = 10.0
 CONFIDENCE_FLOOR = 0.02
 #: Share of a Gaussian's evidence (S1 / E) from which the masks count it as partly in (decide:
 #: thin structures under eroded masks; lower shares bled into neighbours on dilated masks,
-#: measured in docs/benchmarks.md) ...
+#: measured in docs/studies/thin-targets.md) ...
 PARTLY_IN = 0.2
 #: ... when its codebook entry's share is at least this (a support that one view's mask takes
 #: whole stays out).
@@ -80,14 +80,14 @@ ENTRY_PARTLY_IN = 0.5
 #: left the palm plant at 3D IoU 0.17 on res/). The guitar's vote, which loses its neck,
 #: holds 0.46-0.56 of the field's answer over 3 fields and 2 draws of the masks: 0.6 lets the
 #: guard weigh it, and every fusion between 0.5 and 0.6 (7 of them) helped; the first that
-#: hurt sits at 0.61-0.65 (docs/benchmarks.md).
+#: hurt sits at 0.61-0.65 (docs/studies/thin-targets.md).
 COLLAPSE_RATIO = 0.6
 #: Share of "in" below which the masks reject a Gaussian outright (`guard`).
 REJECTED_SHARE = 0.05
 #: The guard fuses only when what the field adds carries at least this share of the masks'
 #: claim (S1) that the vote itself carries: the vote lost much of what the masks claim. On the
 #: dev room (3 fits of the field x 4 RES sets, every firing of the size rule) the fusions that
-#: helped had 0.75-11, the ones that hurt 0.03-0.39 (docs/benchmarks.md).
+#: helped had 0.75-11, the ones that hurt 0.03-0.39 (docs/studies/thin-targets.md).
 LOST_CLAIM = 0.5
 #: ... and the masks' pooled share counts only when the typical view that answers (the median
 #: of the non-empty views' own shares, weighted by how much of the additions each sees) puts
@@ -98,8 +98,8 @@ LOST_CLAIM = 0.5
 #: 0.19-0.31. The claim counts unless the typical view rejects the additions outright (under
 #: REJECTED_SHARE): a detector's box over the desk under "the cactus on the desk" on a third
 #: of the views carried 1.22 of the vote's claim at a typical view of 0.0005; the fusions by
-#: the claim that helped on the dev room had 0.10-0.97, p07's table 0.001-0.011 (#38,
-#: docs/benchmarks.md).
+#: the claim that helped on the dev room had 0.10-0.97, p07's table 0.001-0.011
+#: (docs/studies/correlated-errors.md).
 TYPICAL_PARTLY_IN = 0.1
 #: The rounds stop once no view's relative confidence moves by more than this.
 CONFIDENCE_TOL = 1e-3
