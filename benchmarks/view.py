@@ -175,10 +175,9 @@ def _dev_field(room: Path, scene, tmp: Path) -> Path:  # noqa: ANN001
 
 def _mask_at_camera(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
     from benchmarks.run import synthetic_scene
-    from stages.query.lift_answer import lifted_masks
+    from stages.query.lift_answer import lifted_masks, rgb_and_selection
     from stages.render.rasterizer import Rasterizer
     from stages.testing.synthetic import ring_cameras
-    from stages.view.session import rgb_and_selection
 
     g = synthetic_scene(300_000, tmp)
     rast = Rasterizer.from_gaussians(g)

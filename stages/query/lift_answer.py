@@ -428,5 +428,18 @@ def lifted_masks(
     return out
 
 
+def rgb_and_selection(
+    rast: Rasterizer, selected: np.ndarray, cam: Camera
+) -> tuple[np.ndarray, np.ndarray]:
+    """The RGB render [H, W, 3] and the selection's mask [H, W] bool at `cam` in one tile walk
+    (the selection composited as a fourth colour channel): the same pixels as render_rgb and
+    lifted_masks, which walk twice (the tests hold them equal)."""
+    view = rast.view(cam)
+    colors = rast.colors(cam, view.gaussians)  # [V, 3]
+    sel = np.asarray(selected, np.float32)[view.gaussians][:, None]  # [V, 1]
+    out = rast.render_view(cam, view, np.concatenate([colors, sel], axis=1))
+    return out.image[:, :, :3], out.image[:, :, 3] > 0.5 * out.alpha
+
+
 def _name(cam: Camera | None) -> str | None:
     return cam.name if cam else None

@@ -24,6 +24,7 @@ from stages.query.lift_answer import (
     RefineParams,
     lift_prompt,
     lifted_masks,
+    rgb_and_selection,
 )
 from stages.query.lift_math import LiftParams
 from stages.query.masks import overlay
@@ -108,11 +109,13 @@ def write_masks(
     make_dir(out, "--out")
     written = []
     for cam in report.progress(cams, "render-mask", show=lambda c: c.name if c else None):
-        m = lifted_masks(rast, selected, [cam])[cam.name]
+        if overlays:  # the RGB and the mask in one tile walk
+            rgb, m = rgb_and_selection(rast, selected, cam)
+        else:
+            m = lifted_masks(rast, selected, [cam])[cam.name]
         stem = view_file_name(cam.name)
         write_png(out / f"{stem}.png", m.astype(np.uint8) * 255, force)
         if overlays:
-            rgb = rast.render_rgb(cam).image
             write_png(out / f"{stem}.overlay.png", overlay(rgb, m), force)
         written.append(out / f"{stem}.png")
     return written

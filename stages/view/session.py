@@ -35,7 +35,7 @@ from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, read_hyperplanes
-from stages.query.lift_answer import LiftedAnswer, RefineParams
+from stages.query.lift_answer import LiftedAnswer, RefineParams, rgb_and_selection
 from stages.query.lift_files import answer_prompt, write_lifted_selection, write_masks
 from stages.query.lift_math import LiftParams
 from stages.query.masks import MaskParams, MaskRun, mask_of, overlay, render_masks
@@ -610,19 +610,6 @@ class ViewSession:
             owned[str(path.relative_to(self.out))] = sha256_file(path)
             write_json(self.out / OWNER, {"written_by": "goi view", "files": owned}, force=True)
         return path
-
-
-def rgb_and_selection(
-    rast: Rasterizer, selected: np.ndarray, cam: Camera
-) -> tuple[np.ndarray, np.ndarray]:
-    """The RGB render [H, W, 3] and the selection's mask [H, W] bool at `cam` in one tile walk
-    (the selection composited as a fourth colour channel): the same pixels as render_rgb and
-    lifted_masks, which walk twice (the tests hold them equal)."""
-    view = rast.view(cam)
-    colors = rast.colors(cam, view.gaussians)  # [V, 3]
-    sel = np.asarray(selected, np.float32)[view.gaussians][:, None]  # [V, 1]
-    out = rast.render_view(cam, view, np.concatenate([colors, sel], axis=1))
-    return out.image[:, :, :3], out.image[:, :, 3] > 0.5 * out.alpha
 
 
 def _mode(answer: Answer) -> str:

@@ -191,9 +191,8 @@ def test_gate_lets_an_urgent_render_in_between_steps():
 
 
 def test_one_walk_gives_render_rgb_and_lifted_masks_pixels(gaussians):
-    from stages.query.lift_answer import lifted_masks
+    from stages.query.lift_answer import lifted_masks, rgb_and_selection
     from stages.render.rasterizer import Rasterizer
-    from stages.view.session import rgb_and_selection
     from tests.helpers import front_camera
 
     rast = Rasterizer.from_gaussians(gaussians)
