@@ -23,7 +23,7 @@ import numpy as np
 from stages import __version__
 from stages.core.errors import GoiError
 from stages.core.files import check_output_name, file_in_the_way, refuse_if_input, with_option
-from stages.core.staging import current_stage
+from stages.core.staging import current_stage, fsync_dir
 
 #: argv of the running command, recorded in every artifact (the CLI sets it; tests may not).
 _COMMAND: list[str] = []
@@ -115,12 +115,7 @@ def atomic_path(path: str | os.PathLike[str], force: bool = False) -> Iterator[P
             stage.add(tmp, dest)
             return
         os.replace(tmp, dest)
-        with contextlib.suppress(OSError):  # persist the rename itself; not possible everywhere
-            dfd = os.open(dest.parent, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
+        fsync_dir(dest.parent)
     except OSError as e:
         tmp.unlink(missing_ok=True)
         raise GoiError(f"{dest}: could not write ({e.strerror or e})") from e

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from stages.core.errors import GoiError
-from stages.core.staging import current_stage
+from stages.core.staging import current_stage, fsync_dir
 
 #: JSON and text inputs (cameras, prompts, embeddings, manifests) larger than this are refused.
 MAX_TEXT_BYTES = 512 << 20
@@ -369,10 +369,12 @@ def create_partial(path: Path, option: str) -> None:
 
 
 def finish_partial(path: Path, dest: Path) -> None:
-    """A finished partial file made durable (fsync) and renamed to its destination."""
+    """A finished partial file made durable (fsync) and renamed to its destination (the rename
+    persisted too)."""
     with open(path, "rb+") as fh:
         os.fsync(fh.fileno())
     os.replace(path, dest)
+    fsync_dir(dest.parent)
 
 
 class OutputBusy(GoiError):

@@ -34,13 +34,8 @@ class Stage:
             os.replace(tmp, dest)
             parents.add(dest.parent)
         self.pending.clear()
-        for parent in parents:  # persist the renames; not possible everywhere
-            with contextlib.suppress(OSError):
-                fd = os.open(parent, os.O_RDONLY)
-                try:
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
+        for parent in parents:
+            fsync_dir(parent)
 
     def abort(self) -> None:
         for tmp in self.pending.values():
@@ -83,3 +78,13 @@ def kept_on_interrupt(partial: Path, created: bool) -> Iterator[None]:
         if created:
             partial.unlink(missing_ok=True)
         raise
+
+
+def fsync_dir(directory: Path) -> None:
+    """Persist the renames into `directory` (its entry list); not possible everywhere."""
+    with contextlib.suppress(OSError):
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
