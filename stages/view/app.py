@@ -71,6 +71,7 @@ class ViewerApp:
         self.sent_bytes = int(sum(b.nbytes for b in self.buffers))
         self.worker = Worker(self._job_failed)
         self.pages: dict[int, Page] = {}
+        self.gone: set[int] = set()  # tabs closed while their page was being built
         self.lock = threading.Lock()
         self.server: Any = None
         cams = session.scene.cameras
@@ -144,13 +145,26 @@ class ViewerApp:
 
     def _connect(self, client: Any) -> None:
         page = Page(self, client)
-        page.build()
+        try:
+            page.build()
+        except BaseException:
+            page.close()
+            raise
+        # registered once built (history and answers reach only built pages), unless the tab
+        # closed while it was being built
         with self.lock:
-            self.pages[client.client_id] = page
+            gone = client.client_id in self.gone
+            self.gone.discard(client.client_id)
+            if not gone:
+                self.pages[client.client_id] = page
+        if gone:
+            page.close()
 
     def _disconnect(self, client: Any) -> None:
         with self.lock:
             page = self.pages.pop(client.client_id, None)
+            if page is None:  # still being built: _connect closes it
+                self.gone.add(client.client_id)
         self.worker.cancel(client.client_id)
         if page is not None:
             page.close()
@@ -286,6 +300,7 @@ class Page:
     def close(self) -> None:
         self.closed.set()
         self.camera_moved.set()
+        self.built.set()  # an answer waiting for the page to be built sees it closed
 
     # -- asking ---------------------------------------------------------------------------------
 
