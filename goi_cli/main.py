@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import sys
 import traceback
@@ -14,7 +13,7 @@ import click
 from goi_cli import batch_commands, commands, eval_commands, query_commands, view_commands
 from stages import __version__
 from stages.core.artifacts import set_command
-from stages.core.errors import GoiError
+from stages.core.errors import GoiError, debugging, set_debug
 from stages.core.files import guarded_inputs
 
 
@@ -47,7 +46,8 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
-    debug = "--debug" in args or os.environ.get("GOI_DEBUG", "") not in ("", "0")
+    set_debug("--debug" in args)
+    debug = debugging()
     args = [a for a in args if a != "--debug"]
     set_command(["goi", *args])
     old_show = warnings.showwarning

@@ -7,7 +7,11 @@ and exits 1.
 
 from __future__ import annotations
 
+import os
 import warnings
+
+#: --debug on this command's line (the CLI sets it); GOI_DEBUG=1 says the same
+_debug = False
 
 
 class GoiError(Exception):
@@ -21,6 +25,17 @@ def warn(message: str) -> None:
 
 class GoiWarning(UserWarning):
     pass
+
+
+def set_debug(on: bool) -> None:
+    """The CLI's --debug, for the stages that show more when it is given."""
+    global _debug
+    _debug = on
+
+
+def debugging() -> bool:
+    """Whether the user asked for the details of a failure (--debug or GOI_DEBUG=1)."""
+    return _debug or os.environ.get("GOI_DEBUG", "") not in ("", "0")
 
 
 def check_choice(option: str, value: str, choices: tuple[str, ...]) -> str:

@@ -6,7 +6,8 @@ collective waits at most the run's timeout, and a failure (another rank gone, a 
 becomes one GoiError line instead of a hang or a traceback. torch's C++ side logs its own
 retries and errors, each with a C++ stack trace, straight to file descriptor 2 (a rank with no
 rank 0 printed five of them under goi's line); what it writes during the rendezvous and the
-collectives is kept out of the terminal (shown with GOI_DEBUG=1 when the collective fails).
+collectives is kept out of the terminal (shown with --debug or GOI_DEBUG=1 when the collective
+fails).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numba
 import torch
 import torch.distributed as dist
 
-from stages.core.errors import GoiError
+from stages.core.errors import GoiError, debugging
 
 #: What torchrun sets in each rank's environment; without it there is nothing to join.
 TORCHRUN_ENV = (
@@ -101,7 +102,7 @@ class _CppLog:
 def _cpp_log() -> Iterator[_CppLog]:
     """File descriptor 2 (where c10's logging writes, below Python's sys.stderr) sent to a
     temporary file while the block runs; written out after all only when it failed and
-    GOI_DEBUG is set."""
+    --debug (or GOI_DEBUG=1) is given."""
     import sys
     import tempfile
 
@@ -117,7 +118,7 @@ def _cpp_log() -> Iterator[_CppLog]:
         os.dup2(saved, 2)
         os.close(saved)
         f = _CppLog.file
-        if log.failed and os.environ.get("GOI_DEBUG", "") not in ("", "0"):
+        if log.failed and debugging():
             f.seek(0)
             sys.stderr.write(f.read().decode("utf-8", "replace"))
         f.seek(0)
