@@ -50,6 +50,7 @@ from stages.core.files import (
     OutputBusy,
     check_output_name,
     create_partial,
+    finish_partial,
     output_lock,
     partial_exists,
     refuse_inputs,
@@ -174,7 +175,9 @@ def _duration(seconds: float) -> str:
 
 
 @contextlib.contextmanager
-def _index_lock(out: Path, option: str, wait: float, report: Report) -> Iterator[None]:
+def _index_lock(
+    out: Path, option: str, wait: float, report: Report, wait_option: str
+) -> Iterator[None]:
     """`output_lock` on the index, waiting up to `wait` seconds while another goi process
     holds it (it is adding views: they are there when it lets go)."""
     deadline = time.monotonic() + wait
@@ -188,7 +191,7 @@ def _index_lock(out: Path, option: str, wait: float, report: Report) -> Iterator
             if left <= 0:
                 if wait <= 0:
                     raise
-                raise GoiError(f"{e} (waited {_duration(wait)}; --wait)") from None
+                raise GoiError(f"{e} (waited {_duration(wait)}; {wait_option})") from None
             if not told:
                 report.log(f"{e.args[0].split('; ')[0]}: waiting for it (up to {_duration(wait)})")
                 told = True
@@ -214,6 +217,7 @@ class IndexWriter:
         wait: float = 0.0,
         fresh: bool = False,
         option: str = "--out",
+        wait_option: str = "--wait",
     ):
         self.scene = scene
         self.cams = scene.views("train")
@@ -224,7 +228,13 @@ class IndexWriter:
         self.wait = wait
         self.fresh = fresh
         self.option = option
+        self.wait_option = wait_option
         check_output_name(self.out, option)
+        if self.out.is_symlink():  # publishing renames over it: the link would be replaced
+            raise GoiError(
+                f"{option}: {self.out} is a symbolic link; goi adds views to an index only as a "
+                "regular file (name the file it points to)"
+            )
         check_output_name(self.partial, option)
         self.spec = bundle_spec(bundle)
         self.digests = image_digests(scene, self.cams)
@@ -240,7 +250,9 @@ class IndexWriter:
         self._stack = contextlib.ExitStack()
 
     def __enter__(self) -> IndexWriter:
-        self._stack.enter_context(_index_lock(self.out, self.option, self.wait, self.report))
+        self._stack.enter_context(
+            _index_lock(self.out, self.option, self.wait, self.report, self.wait_option)
+        )
         try:
             self._prepare()
         except BaseException:
@@ -303,7 +315,6 @@ class IndexWriter:
                 if v not in self.views:
                     self._write(v, published.image_side(v), published.sizes[v])
         self._stamp()
-        self._start = dict(self.views)
 
     def _stamp(self) -> None:
         assert self._f is not None
@@ -378,15 +389,7 @@ class IndexWriter:
             return
         # read back as a query will read it (resumed views included) before it is renamed
         check_values(load_res_index(self.partial), self.spec)
-        with open(self.partial, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(self.partial, self.out)
-        with contextlib.suppress(OSError):  # persist the rename; not possible everywhere
-            fd = os.open(self.out.parent, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+        finish_partial(self.partial, self.out)
 
 
 def _copy_into(src: Path, partial: Path) -> None:
@@ -409,6 +412,11 @@ def _part(part: str | None, cams: list[Camera]) -> list[Camera]:
         raise GoiError(f"--part: {part!r} is not K/N (e.g. 1/4)") from None
     if not 1 <= k <= n:
         raise GoiError(f"--part: {part!r}: K must be between 1 and N")
+    if k > len(cams):
+        raise GoiError(
+            f"--part: {part!r}: the scene has {len(cams)} training views, so part {k} holds "
+            f"none (K must be at most {len(cams)})"
+        )
     return index_order(cams)[k - 1 :: n]
 
 
@@ -709,7 +717,6 @@ class GrowingIndex:
         self.bundle = bundle
         self.report = report
         self.wait = wait
-        self.bundle_name = bundle.name
         self.bundle_sha256 = bundle.digest()
         self.cams = scene.views("train")
         self.writer: IndexWriter | None = None
@@ -720,6 +727,12 @@ class GrowingIndex:
             raise GoiError(f"--res-index: {self.path}: directory {parent} does not exist")
         self.published = self._open()
         if not self.complete:
+            if self.path.is_symlink():  # before any work: adding views renames over the link
+                raise GoiError(
+                    f"--res-index: {self.path} is a symbolic link to an index that lacks views; "
+                    "goi adds views to an index only as a regular file (name the file it "
+                    "points to)"
+                )
             for c in self.cams:  # every photo it may index found before any work
                 scene.image_path(c)
 
@@ -757,7 +770,7 @@ class GrowingIndex:
         """Index `cam` (once this process holds the index: a second one waits for it)."""
         if self.writer is None:
             writer = IndexWriter(self.scene, self.bundle, self.path, self.report, self.wait,
-                                 option="--res-index")  # fmt: skip
+                                 option="--res-index", wait_option="--index-wait")  # fmt: skip
             self.writer = writer.__enter__()
             writer.planned = self.planned
         self.writer.add(cam)
@@ -769,13 +782,3 @@ class GrowingIndex:
         writer, self.writer = self.writer, None
         writer.__exit__(None, None, None)
         self.published = load_res_index(self.path) if self.path.is_file() else None
-
-    def __enter__(self) -> GrowingIndex:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-def _name(cam: Camera | None) -> str | None:
-    return cam.name if cam else None

@@ -227,9 +227,10 @@ def test_index_res_in_parts_merged(photographed, res_bundles, full_index, tmp_pa
     merged = load_res_index(tmp_path / "all.h5")
     assert list(merged.views) == list(load_res_index(full_index).views)
     _same_arrays(merged, load_res_index(full_index), s["train"])
-    for bad in ("3/2", "0/2", "x"):
+    for bad in ("3/2", "0/2", "x", "5/6"):  # 5/6: the scene's 4 views leave part 5 empty
         assert main([*base, "--part", bad, "--out", str(tmp_path / "x.h5")]) == 2
         assert "--part" in capsys.readouterr().err
+        assert not list(tmp_path.glob("x.h5*"))
 
 
 def test_goi_view_refines_a_lifted_answer_as_the_index_grows(
@@ -264,3 +265,27 @@ def test_goi_view_refines_a_lifted_answer_as_the_index_grows(
     session.answer(OTHER, "lifted_fieldless", control)
     assert all("of 4 views" in x for x in labels)
     assert json.loads(json.dumps(load_selection(out).lifted["refinement"]))["final"] is True
+
+
+def test_a_linked_index_that_lacks_views_is_refused_before_any_work(
+    photographed,  # noqa: F811
+    res_bundles,
+    tmp_path,
+    capsys,
+):
+    """Adding views renames the grown index over the path: a symbolic link there would be
+    replaced by a file, so it is refused (exit 2, naming it) and the index it points to is
+    left as it was."""
+    s, _ = photographed
+    bundle = res_bundles["grounded"]
+    real = tmp_path / "real.h5"
+    assert main(_q(s, real, bundle, tmp_path / "a", PROMPT, "--res-views", "2")) == 0
+    before = real.read_bytes()
+    link = tmp_path / "link.h5"
+    link.symlink_to(real)
+    capsys.readouterr()
+    assert main(_q(s, link, bundle, tmp_path / "b", OTHER, "--res-views", "3")) == 2
+    err = capsys.readouterr().err
+    assert "--res-index" in err and "symbolic link" in err, err
+    assert link.is_symlink() and real.read_bytes() == before
+    assert not (tmp_path / "b").exists()
