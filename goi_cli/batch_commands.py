@@ -38,10 +38,22 @@ def batch_cmd(config: Path, snakemake_args: tuple[str, ...], **kw) -> None:
     Needs `pip install 'goi[batch]'`.
     """
     from stages.batch.config import load_batch
-    from stages.batch.run import last_line, run_batch, snakemake_available
+    from stages.batch.run import (
+        check_snakemake_args,
+        last_line,
+        profile_file,
+        run_batch,
+        snakemake_available,
+    )
 
     snakemake_available()  # before the configuration: nothing can run without it
     run = build(BatchRun, kw)
+    # Snakemake's arguments and the profile are refused before the configuration's scenes,
+    # bundles and indexes are loaded and checked (seconds); run_batch checks them again for
+    # its other callers (milliseconds)
+    check_snakemake_args(list(snakemake_args))
+    if run.profile is not None:
+        profile_file(run.profile)
     batch = load_batch(config, run.out)
     _check_options(batch)
     result = run_batch(batch, run, list(snakemake_args), TERMINAL)

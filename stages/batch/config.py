@@ -43,6 +43,7 @@ _OPTION = re.compile(r"[a-z][a-z0-9-]*")
 RESERVED = {
     "scene", "ply", "cameras", "images", "out", "from", "bundle", "features", "codebook",
     "field", "prompt", "prompt-id", "text-embeddings", "res-masks", "res-index", "lift",
+    "part", "merge",  # index-res: the parts of index_jobs and their merge
 }  # fmt: skip
 #: A configuration is small: larger files, deeper nesting or more values are refused (YAML
 #: aliases can make a small file a huge or endless tree).
@@ -447,6 +448,10 @@ def _scene(
         if not isinstance(index_parts, int) or not 1 <= index_parts <= 256:
             raise c.fail(where("index_jobs"), f"{key}.index_jobs", "should be a whole number "
                          "from 1 to 256")  # fmt: skip
+        n_train = len(scene.views("train"))
+        if index_parts > n_train:
+            raise c.fail(where("index_jobs"), f"{key}.index_jobs", f"is {index_parts}, but the "
+                         f"scene has {n_train} training views to share out")  # fmt: skip
     if isinstance(res_index, str):
         index = exists("res_index")
         assert index is not None

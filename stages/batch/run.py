@@ -178,6 +178,12 @@ def profile_file(profile: Path) -> Path:
     root = read_config(yaml_file, "Snakemake profile")
     if not isinstance(root.value, dict):
         raise GoiError(f"--profile: {yaml_file}: not a mapping of Snakemake options")
+    if "__use_yte__" in root.value:  # Snakemake would template it (Python) into other keys
+        raise GoiError(
+            f"--profile: {yaml_file}: a YTE template profile (__use_yte__) is refused: goi batch "
+            "checks a profile's keys for the options it sets, and a template's keys are known "
+            "only once Snakemake has run it; give a plain profile"
+        )
     for key, node in root.value.items():  # a key is an option: `jobs` or `--jobs`
         option = key if key.startswith("--") else f"--{key}"
         check_snakemake_args([option], f"--profile {yaml_file}: line {node.line}")

@@ -310,3 +310,7 @@ def test_the_index_is_built_as_parallel_jobs(scenes, res_bundles, tmp_path, capf
     assert "'scenes[0].index_jobs' is given but 'res_index' is not true" in "".join(
         capfd.readouterr()
     )
+    cfg.write_text(cfg.read_text().replace("res_index: false", "res_index: true"))
+    cfg.write_text(cfg.read_text().replace("index_jobs: 2", "index_jobs: 200"))
+    assert main(["batch", str(cfg), "--dry-run"]) == 2
+    assert "training views to share out" in "".join(capfd.readouterr())
