@@ -395,15 +395,14 @@ class FitCameras:
         reused on its word)."""
         try:
             doc = json.loads(self.path.read_text())
-            if doc["schema"] != _CAMERAS_SCHEMA or not str(doc["schema_version"]).startswith("1."):
-                return {}
+            validate_json(doc, _CAMERAS_SCHEMA, str(self.path))
             records = doc["cameras"]
             ok = isinstance(records, dict) and all(
                 isinstance(v, dict) and all(isinstance(x, list) for x in v.values())
                 for v in records.values()
             )
             return records if ok else {}
-        except (OSError, ValueError, KeyError, TypeError):
+        except (OSError, ValueError, KeyError, TypeError, GoiError):
             return {}
 
     def why_not(self, digest: object) -> str | None:
@@ -422,7 +421,7 @@ class FitCameras:
         self.records[self.digest] = self.values
         doc = {
             "schema": _CAMERAS_SCHEMA,
-            "schema_version": "1.0",
+            "schema_version": current_version(_CAMERAS_SCHEMA),
             "goi_version": __version__,
             "command": command_line(),
             "note": "the training cameras' values [width, height, fx, fy, cx, cy, R (row-major), "

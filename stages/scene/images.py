@@ -47,7 +47,9 @@ def _quiet_cv2() -> Any:
     return cv2
 
 
-def _imread(path: Path, what: str) -> np.ndarray:
+def _imread(path: Path, what: str, flags: int | None = None) -> np.ndarray:
+    """The image at `path` as cv2.imread gives it (`flags`: IMREAD_UNCHANGED unless given),
+    its file and size checked first."""
     cv2 = _quiet_cv2()
     regular_file(path, what)
     try:
@@ -59,7 +61,7 @@ def _imread(path: Path, what: str) -> np.ndarray:
             f"{path}: {what} is {size[0]}x{size[1]} pixels; goi reads images of up to "
             f"{MAX_IMAGE_PIXELS // 1_000_000} megapixels"
         )
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
     if img is None:
         raise GoiError(f"{path}: cannot read {what} (not a PNG/JPEG/..., or damaged)")
     return img

@@ -171,17 +171,11 @@ def checked_size(cam: Camera, path: Path, what: str, same_as: Camera | None = No
 
 def read_grey_cv2(path: Path, what: str) -> np.ndarray:
     """[H, W] uint8 as `cv2.imread(p, cv2.IMREAD_GRAYSCALE)` gives it (GOI's eval_seg.py)."""
-    from stages.core.files import regular_file
-    from stages.scene.images import MAX_IMAGE_PIXELS, _quiet_cv2, image_size
+    import cv2
 
-    cv2 = _quiet_cv2()
-    size = image_size(regular_file(path, what))
-    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
-        raise GoiError(f"{path}: the {what} is {size[0]}x{size[1]} pixels; too large")
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise GoiError(f"{path}: cannot read the {what} (not an image cv2 decodes)")
-    return np.asarray(img)
+    from stages.scene.images import _imread
+
+    return np.asarray(_imread(path, f"the {what}", cv2.IMREAD_GRAYSCALE))
 
 
 def pil_nearest(img: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -265,6 +265,9 @@ def run_benchmark(
         else:
             sources_of.append({})
     work = Path(run.work or Path(run.out).with_suffix(".work"))
+    # the --seeds fitted on their own (WORK/<scene>/seed-<s>/): all but the run's own seed
+    # when its `full` is among the variants (that answer is reused)
+    own_fits = [x for x in seeds if not (x == p.seed and SEEDED in variants)]
     inputs = [root, *(t for _, t in specs), features, res, emb_path, run.bundle]
     outputs = {
         "--out": run.out,
@@ -272,11 +275,15 @@ def run_benchmark(
         "--work": [
             work / s.bench.name / sub / f
             for s in scenes
-            for sub in ["", *(f"seed-{x}" for x in seeds if x != p.seed)]
+            for sub in ["", *(f"seed-{x}" for x in own_fits)]
             for f in WORK_FILES
         ],
     }
     refuse_inputs(outputs, inputs)
+    for s in scenes:  # every --work directory a fit may write, checked before the first fit
+        _check_work(work / s.bench.name)
+        for x in own_fits:
+            _check_work(work / s.bench.name / f"seed-{x}")
     doc: dict = {
         "schema": "goi.eval",
         "schema_version": current_version("goi.eval"),
@@ -309,7 +316,6 @@ def run_benchmark(
             + ")"
         )
         wdir = work / name
-        _check_work(wdir)
         tfcc, direct = _fit_models(s.room, s.features, wdir, variants, p, timer, report)
         models = Answerers.of(s.room.scene.gaussians, s.room.scene.views("test"), tfcc, direct)
         if bundle is not None:
@@ -331,12 +337,11 @@ def run_benchmark(
         if seeds:
             runs = {}
             for seed in seeds:
-                if seed == p.seed and SEEDED in variants:
+                if seed not in own_fits:
                     runs[seed] = entry["variants"][SEEDED]
                     continue
                 sp = replace(p, seed=seed)
                 sdir = wdir / f"seed-{seed}"
-                _check_work(sdir)
                 report.log(f"eval: {name}: {SEEDED} with seed {seed} (--seeds)")
                 tf, _ = _fit_models(s.room, s.features, sdir, [SEEDED], sp, timer, report)
                 m = Answerers.of(s.room.scene.gaussians, s.room.scene.views("test"), tf, None)

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
+from schemas import current_version
 from stages import __version__
 from stages.core.errors import GoiError
 from stages.core.files import check_output_name, make_dir
@@ -351,7 +352,12 @@ def export_model(
         tmp = Path(t)
         parts = _export(plan, tmp, opts, report)
         name = "+".join(s.path.resolve().name for s in checked)
-        manifest = {"schema": "goi.bundle", "schema_version": "1.3", "name": name, **parts}
+        manifest = {
+            "schema": "goi.bundle",
+            "schema_version": current_version("goi.bundle"),
+            "name": name,
+            **parts,
+        }
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
         (tmp / MARKER).write_text(f"written by goi export-model (goi {__version__})\n")
         bundle = load_bundle(tmp)  # what we wrote must pass our own reader
