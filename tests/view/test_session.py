@@ -69,6 +69,8 @@ def test_a_lifted_answer_is_goi_selects(room, tmp_path, route):
     assert partials and all(not p.final for p in partials)
     assert [p.views_done for p in partials] == sorted(p.views_done for p in partials)
     assert partials[-1].views_done < ans.views_done == ans.views_total
+    if route == "lifted":  # previews: the fixed-threshold plane decides what no view reaches
+        assert all(p.lifted.plane.info == {} for p in partials) and ans.lifted.plane.info
 
 
 @pytest.mark.slow
