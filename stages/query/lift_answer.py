@@ -187,10 +187,15 @@ def _answer(
     hp: HyperplaneParams,
     lp: LiftParams,
     chosen_by: str,
+    fit: bool = True,
 ) -> LiftedAnswer:
     """Vote, fit the OSH on the vote's evidence, and decide with it (a second fuse: the plane
     only changes what unseen entries do, the votes are the same). Without a field the vote
-    alone decides: no Gaussian is 'seen' by a field, so the ones below min_evidence are out."""
+    alone decides: no Gaussian is 'seen' by a field, so the ones below min_evidence are out.
+    `fit` False gives a preview (the partial answers while views are lifted): the first fuse,
+    the fixed-threshold plane deciding what no view reaches. The OSH's SGD costs ten times
+    the vote (0.4 s on the dev room): fitted for every partial, it took half of goi view's
+    lifted answer."""
     if field is None or text is None:
         unseen = np.zeros(entry.shape, bool)
         lifted = fuse(evidence, entry, unseen, np.zeros(1, bool), lp)
@@ -198,30 +203,11 @@ def _answer(
     seen = field.seen
     text_plane = threshold_plane(prompt, text, field.unit_codebook(), hp.threshold)
     first = fuse(evidence, entry, seen, text_plane.positive, lp)
+    if not fit:
+        return LiftedAnswer(first, text_plane, evidence, chosen_by)
     plane = fit_lifted_plane(first, field, entry, prompt, text, hp)
     lifted = fuse(evidence, entry, seen, plane.positive, lp)
     return LiftedAnswer(lifted, plane, evidence, chosen_by)
-
-
-def _preview(
-    evidence: list[ViewEvidence],
-    field: Field | None,
-    entry: np.ndarray,
-    prompt: str,
-    text: np.ndarray | None,
-    hp: HyperplaneParams,
-    lp: LiftParams,
-    chosen_by: str,
-) -> LiftedAnswer:
-    """A partial answer cheap enough to show while views are lifted: the vote, with the
-    fixed-threshold plane deciding the Gaussians no view reaches. `_answer` fits the OSH on
-    the vote's evidence for them, which costs ten times the vote (0.4 s of SGD on the dev
-    room): fitted for every partial, it took half of goi view's lifted answer."""
-    if field is None or text is None:
-        return _answer(evidence, field, entry, prompt, text, hp, lp, chosen_by)
-    plane = threshold_plane(prompt, text, field.unit_codebook(), hp.threshold)
-    return LiftedAnswer(fuse(evidence, entry, field.seen, plane.positive, lp), plane, evidence,
-                        chosen_by)  # fmt: skip
 
 
 def lift_prompt(
@@ -242,7 +228,7 @@ def lift_prompt(
     gives the field-free answer. `visibility` may give a cached view_visibility (the eval shares
     it between prompts). `partial(make, done, total)` is called after each view is lifted;
     `make()` gives the answer of the views so far (a preview when every view is lifted:
-    `_preview`; the caller decides when it is worth it; `goi view` shows the answer
+    `_answer`'s `fit`; the caller decides when it is worth it; `goi view` shows the answer
     refining). On an index that grows, with `refine.progressive`, `on_answer(answer, done,
     total)` gets each answer worth writing before the last (which is returned)."""
     check_params(lp)
@@ -296,7 +282,8 @@ def lift_prompt(
             evidence.append(view_evidence(rast, c, source.mask(c)))
             if partial is not None:
                 args = (list(evidence), field, entry, prompt, text, hp, lp, "so far")
-                partial(functools.partial(_preview, *args), len(evidence), len(pool))
+                make = functools.partial(_answer, *args, fit=False)  # a preview
+                partial(make, len(evidence), len(pool))
         everything = "all mask files" if files else f"every indexed view ({source.source})"
         lifted_all = _answer(evidence, field, entry, prompt, text, hp, lp, everything)
         return _found_nothing(lifted_all, source, prompt)
