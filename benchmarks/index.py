@@ -15,8 +15,9 @@ GOI_INDEX_PARTS (comma-separated, default all but `full`) picks the parts below.
                                      the test views, selection): it indexes the 8 views it
                                      chooses and keeps them
   second_prompt_s_dev_room           another prompt on the 8 views the first indexed (no new
-                                     ones), with the bundle loaded (a long-lived process: goi
-                                     view, a batch); median
+                                     ones) in a long-lived process as goi view answers it: the
+                                     bundle loaded, the cameras' projections kept
+                                     (Rasterizer.keep_views); median
   second_prompt_cli_s_dev_room       the same as a new process does it (the bundle loaded too)
   prompt_side_s_first_views          baseline, same run: the prompt side alone on those views
                                      (OWLv2's text graph once, then per view the dot product,
@@ -157,7 +158,7 @@ def _first_answers(
     from stages.query.pipeline import PromptSources, QueryParams, QueryRun, run_query
     from stages.query.prompts import Prompt
     from stages.query.res import ResGrowing, growing_index
-    from stages.render.rasterizer import Rasterizer
+    from stages.render.rasterizer import KEEP_VIEWS_BYTES, Rasterizer
 
     hp, lp = HyperplaneParams(), LiftParams(lift=True)
 
@@ -184,6 +185,7 @@ def _first_answers(
     bundle.check_res()
     train, test = scene.views("train"), scene.views("test")
     rast = Rasterizer.from_gaussians(scene.gaussians)
+    rast.keep_views(KEEP_VIEWS_BYTES)  # as goi view keeps them, prompt after prompt
 
     def second() -> None:  # goi query's lifted route, the bundle already loaded
         grow = growing_index(index, bundle, scene)

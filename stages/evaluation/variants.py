@@ -38,7 +38,7 @@ from stages.query.osh import Counts, HyperplaneParams, fit_osh, probability, thr
 from stages.query.prompts import Prompt
 from stages.query.res import NothingFound, ResFiles, ResSource, choose_views
 from stages.query.selection import plane_probability, select
-from stages.render.rasterizer import Rasterizer
+from stages.render.rasterizer import KEEP_VIEWS_BYTES, Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.gaussians import Gaussians
 from stages.semantics.decode import COVERED_ALPHA, DecodedView, SemanticRenderer
@@ -286,6 +286,8 @@ class Answerers:
         else:
             rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(gaussians)
             vis = VisibilityCache(rast)
+        # every prompt lifts the same training views and renders the same test views
+        rast.keep_views(KEEP_VIEWS_BYTES)
         return cls(tfcc, direct, rast, vis, {c.name: c for c in test})
 
     def predict(self, variant: str, q: Question) -> Prediction:

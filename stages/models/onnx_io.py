@@ -54,6 +54,11 @@ def session(path: Path, low_memory: bool = False) -> Session:
     ort.set_default_logger_severity(4)
     opts = ort.SessionOptions()
     opts.log_severity_level = 4
+    # onnxruntime's idle threads spin for work after a run by default, and goi runs its numba
+    # kernels (lifting, masks) between the runs of a prompt: the spinning threads took the
+    # cores from them (a second prompt on 8 indexed views, 2 cores: 2.10 s spinning, 1.91 s
+    # not; a model's own run is the same within 2 %)
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     if _THREADS[0] is not None:
         opts.intra_op_num_threads = _THREADS[0]
         opts.inter_op_num_threads = 1

@@ -6,6 +6,7 @@ given, renders instead; the rasteriser never imports one itself (see `gsplat_bac
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from typing import Any, Protocol
 
 import numba
@@ -16,6 +17,11 @@ from stages.render.projection import Projected, project
 from stages.render.sh import sh_to_rgb
 from stages.render.tiles import Bins, View, bin_tiles, compact_view
 from stages.scene.cameras import Camera
+
+#: What a process answering prompt after prompt keeps of its cameras' projections and tiles
+#: (`Rasterizer.keep_views`): every camera of the dev room (about 8 MB each at 121k Gaussians),
+#: about 80 cameras of a 300k-Gaussian scene.
+KEEP_VIEWS_BYTES = 1 << 30
 
 
 class RenderBackend(Protocol):
@@ -52,6 +58,9 @@ class Rasterizer:
         self.sh = np.ascontiguousarray(sh, np.float32)  # [N, K, 3]
         self.valid = np.ascontiguousarray(valid, np.bool_)  # [N]
         self.backend = backend
+        # (what, camera) -> (bytes, Projected and Bins, or View), least recently used first
+        self._kept: OrderedDict[tuple, tuple[int, Any]] = OrderedDict()
+        self._keep_bytes = 0
 
     @property
     def backend_name(self) -> str:
@@ -62,16 +71,59 @@ class Rasterizer:
         """From a `stages.scene.gaussians.Gaussians`."""
         return cls(g.means, g.quats, g.scales, g.opacities, g.sh, g.valid, backend)
 
+    def keep_views(self, max_bytes: int) -> None:
+        """Keep each camera's projection and tiles (`prepare`, `view`) for the calls after, up
+        to `max_bytes` in all, the least recently used going first (0: keep none, the
+        default). A process that answers prompt after prompt asks the same cameras each time
+        (goi view, goi eval: the views lifted, the masks at the test views); the kept arrays
+        are read-only, and the scene's Gaussians must not change while they are kept."""
+        self._keep_bytes = max(0, int(max_bytes))
+        self._evict()
+
+    def kept_bytes(self) -> int:
+        return sum(n for n, _ in self._kept.values())
+
     def prepare(self, cam: Camera) -> tuple[Projected, Bins]:
         """The projection of every Gaussian and the tiles' lists in scene indices (for callers
         that keep per-Gaussian results in scene order: weights, gradients, lifting)."""
+        key = ("prepare", *_camera_key(cam))
+        if key in self._kept:
+            self._kept.move_to_end(key)
+            return self._kept[key][1]
         proj = project(self.means, self.quats, self.scales, self.opacities, self.valid, cam)
-        return proj, bin_tiles(proj, cam.width, cam.height)
+        out = proj, bin_tiles(proj, cam.width, cam.height)
+        self._keep(key, out, [*vars(out[0]).values(), *vars(out[1]).values()])
+        return out
 
     def view(self, cam: Camera) -> View:
         """The Gaussians `cam` sees, in rows of their own (what a render walks; see `View`)."""
+        key = ("view", *_camera_key(cam))
+        if key in self._kept:
+            self._kept.move_to_end(key)
+            return self._kept[key][1]
         proj = project(self.means, self.quats, self.scales, self.opacities, self.valid, cam)
-        return compact_view(proj, cam.width, cam.height)
+        out = compact_view(proj, cam.width, cam.height)
+        arrays = [*vars(out.proj).values(), *vars(out.bins).values(), out.gaussians]
+        self._keep(key, out, arrays)
+        return out
+
+    def _keep(self, key: tuple, value: Any, parts: list[Any]) -> None:
+        if self._keep_bytes <= 0:
+            return
+        arrays = [a for a in parts if isinstance(a, np.ndarray)]
+        size = sum(a.nbytes for a in arrays)
+        if size > self._keep_bytes:
+            return
+        for a in arrays:  # a caller that wrote into a kept array would change later answers
+            a.flags.writeable = False
+        self._kept[key] = (size, value)
+        self._evict()
+
+    def _evict(self) -> None:
+        total = self.kept_bytes()
+        while self._kept and total > self._keep_bytes:
+            _, (size, _) = self._kept.popitem(last=False)
+            total -= size
 
     def colors(self, cam: Camera, rows: np.ndarray | None = None) -> np.ndarray:
         """View-dependent RGB [N, 3] of the SH, or [len(rows), 3] of the Gaussians `rows` only."""
@@ -105,6 +157,15 @@ class Rasterizer:
         view = self.view(cam)
         _, rows, w = blend_weights(view.proj, view.bins, cam.width, cam.height)
         return np.bincount(view.gaussians[rows], weights=w, minlength=self.means.shape[0])
+
+
+def _camera_key(cam: Camera) -> tuple:
+    """A camera by everything its projection depends on (two cameras of one name may differ:
+    `Camera.scaled`, the viewer's free camera)."""
+    return (
+        cam.name, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+        np.asarray(cam.R, np.float64).tobytes(), np.asarray(cam.t, np.float64).tobytes(),
+    )  # fmt: skip
 
 
 @numba.njit(parallel=True, cache=True)

@@ -52,7 +52,7 @@ from stages.query.res import (
 )
 from stages.query.res_index import GrowingIndex
 from stages.query.selection import Selection, select, write_selection
-from stages.render.rasterizer import Rasterizer
+from stages.render.rasterizer import KEEP_VIEWS_BYTES, Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.formats.inria import write_inria
 from stages.scene.scene import Scene
@@ -249,6 +249,8 @@ class ViewSession:
             self.entry = self.field.decode_index(self.field.features)
         else:
             self.rast = Rasterizer.from_gaussians(scene.gaussians)
+        # prompt after prompt lifts the same training views and renders the same cameras
+        self.rast.keep_views(KEEP_VIEWS_BYTES)
         if sources.text_embeddings is not None:  # read once: a bad file is refused now
             from stages.query.prompts import load_text_embeddings
 

@@ -289,3 +289,39 @@ def test_a_linked_index_that_lacks_views_is_refused_before_any_work(
     assert "--res-index" in err and "symbolic link" in err, err
     assert link.is_symlink() and real.read_bytes() == before
     assert not (tmp_path / "b").exists()
+
+
+def test_a_process_reads_each_view_once_to_check_it(full_index, tmp_path, monkeypatch):
+    """Prompt after prompt on one index (goi view, goi eval) checks each view's values at the
+    first open only; the file written again is checked again."""
+    import shutil
+
+    import h5py
+
+    from stages.core.errors import GoiError
+    from stages.query import res_index as R
+
+    idx = tmp_path / "index.h5"
+    shutil.copy(full_index, idx)
+    reads: list[str] = []
+    real = R.ResIndex.image_side
+
+    def counted(self, view):
+        reads.append(view)
+        return real(self, view)
+
+    monkeypatch.setattr(R.ResIndex, "image_side", counted)
+    index = load_res_index(idx)
+    check_values(index, index.spec)
+    assert sorted(reads) == sorted(index.views)
+    check_values(load_res_index(idx), index.spec)
+    assert len(reads) == len(index.views)  # the same file: not read again
+    key = next(k for k, (_, d) in index.spec.items() if np.dtype(d).kind == "f")
+    view = next(iter(index.views))
+    with h5py.File(idx, "r+") as f:
+        ds = f["views"][view][key]
+        ds[(0,) * ds.ndim] = np.nan
+    st = os.stat(idx)  # another write, even within the clock's tick
+    os.utime(idx, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    with pytest.raises(GoiError, match="NaN or infinite"):
+        check_values(load_res_index(idx), index.spec)

@@ -166,3 +166,48 @@ def test_a_view_renders_what_the_whole_scene_renders(tmp_path, degree):
     np.testing.assert_array_equal(r.render_features(cam, feats).image, f_full)
     _, ids, w = blend_weights(proj, bins, cam.width, cam.height)
     np.testing.assert_array_equal(r.contribution(cam), np.bincount(ids, w, minlength=g.count))
+
+
+def _same(a, b):
+    for k, v in vars(a).items():
+        w = getattr(b, k)
+        if isinstance(v, np.ndarray):
+            np.testing.assert_array_equal(v, w)
+        else:
+            assert v == w, k
+
+
+def test_kept_views_are_the_same_arrays_read_only_and_within_budget(tmp_path):
+    g, r = _scene(tmp_path, n=400)
+    plain = Rasterizer.from_gaussians(g)
+    cams = [front_camera(64, 48), front_camera(61, 45), front_camera(64, 48, name="c1")]
+    per_camera = sum(a.nbytes for a in [*vars(plain.prepare(cams[0])[0]).values(),
+                                        *vars(plain.prepare(cams[0])[1]).values()]
+                     if isinstance(a, np.ndarray))  # fmt: skip
+    r.keep_views(1 << 30)
+    for cam in cams:
+        (p1, b1), (p0, b0) = r.prepare(cam), plain.prepare(cam)
+        _same(p1, p0), _same(b1, b0)
+        v1, v0 = r.view(cam), plain.view(cam)
+        _same(v1.proj, v0.proj), _same(v1.bins, v0.bins)
+        np.testing.assert_array_equal(v1.gaussians, v0.gaussians)
+    # a camera asked again gets what was kept, which no caller can write into
+    assert r.prepare(cams[0])[0] is r.prepare(cams[0])[0]
+    assert r.view(cams[2]) is r.view(cams[2])
+    with pytest.raises(ValueError):
+        r.prepare(cams[0])[0].means2d[0, 0] = 1.0
+    # the two cameras named c0 differ in size: each has its own projection
+    assert r.prepare(cams[0])[1].ids.size != r.prepare(cams[1])[1].ids.size
+    # the budget: the least recently used go first; 0 keeps nothing
+    r.keep_views(int(per_camera * 1.5))
+    assert 0 < r.kept_bytes() <= per_camera * 1.5
+    kept = r.prepare(cams[1])
+    r.prepare(cams[0])  # now the most recently used two, over budget together: c0's stays
+    assert r.prepare(cams[0])[0] is r.prepare(cams[0])[0]
+    assert r.prepare(cams[1]) is not kept
+    r.keep_views(0)
+    assert r.kept_bytes() == 0 and r.prepare(cams[0]) is not r.prepare(cams[0])
+    # rendering through kept views gives the same image
+    r.keep_views(1 << 30)
+    for _ in range(2):
+        np.testing.assert_array_equal(r.render_rgb(cams[1]).image, plain.render_rgb(cams[1]).image)
