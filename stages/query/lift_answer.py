@@ -48,7 +48,7 @@ from stages.query.lift_math import (
 )
 from stages.query.osh import Hyperplane, HyperplaneParams, fit_osh, threshold_plane
 from stages.query.res import ResFiles
-from stages.query.res_index import camera_distance
+from stages.query.res_index import INDEX_WAIT_S, camera_distance
 from stages.query.views import COVER, next_view, next_view_apart, provisional
 from stages.render.lift import lift_mask, selection_mask
 from stages.render.rasterizer import Rasterizer
@@ -74,7 +74,7 @@ class RefineParams:
     --res-views (default with --progressive: every training view)."""
     refine_every: Annotated[int, AT_LEAST_1] = DEFAULT_MODEL_VIEWS
     """With --progressive: views indexed before the first answer, and between two answers."""
-    index_wait: Annotated[float, Range(ge=0, le=86_400)] = 600.0
+    index_wait: Annotated[float, Range(ge=0, le=86_400)] = INDEX_WAIT_S
     """With --res-index: seconds to wait while another goi process adds views to the same
     index before giving up (0: refuse at once)."""
     all_views: bool = False  # --res-views all: every training view (set by the CLI's option)

@@ -22,6 +22,7 @@ from stages.models.bundle import Bundle, load_bundle
 from stages.query.osh import HyperplaneParams
 from stages.query.prompts import Prompt, check_plain_name, view_file_name
 from stages.query.res_index import (
+    INDEX_WAIT_S,
     GrowingIndex,
     ResIndex,
     check_res_index,
@@ -200,7 +201,7 @@ def growing_index(
     bundle: Path | Bundle | None,
     scene: Scene,
     report: Report = SILENT,
-    wait: float = 600.0,
+    wait: float = INDEX_WAIT_S,
 ) -> GrowingIndex:
     """--res-index FILE of a lifted query, with its --bundle: checked against the scene like
     any index (bundle, scene, image set, arrays and values) but free to lack views, or not to

@@ -71,6 +71,10 @@ DONE_ATTR = "image_sha256"
 MAX_ARRAY_BYTES = 1 << 30
 
 
+#: Seconds a process waits while another adds views to the same index (--wait, --index-wait).
+INDEX_WAIT_S = 600.0
+
+
 @dataclass
 class ResIndexRun:
     bundle: Path
@@ -89,7 +93,7 @@ class ResIndexRun:
     threads: Annotated[int | None, Range(ge=1, le=4096)] = None
     """onnxruntime threads of this process (default: one per core). Processes indexing at
     once (--part) each take a share of the cores."""
-    wait: Annotated[float, Range(ge=0, le=86_400)] = 600.0
+    wait: Annotated[float, Range(ge=0, le=86_400)] = INDEX_WAIT_S
     """Seconds to wait while another goi process adds views to the same index before giving up
     (0: refuse at once)."""
 
@@ -726,7 +730,8 @@ class GrowingIndex:
     `ResIndex` (path, bundle_sha256, views, image_side)."""
 
     def __init__(
-        self, path: Path, scene: Scene, bundle: Bundle, report: Report = SILENT, wait: float = 600
+        self, path: Path, scene: Scene, bundle: Bundle, report: Report = SILENT,
+        wait: float = INDEX_WAIT_S,
     ):
         self.path = Path(path)
         self.scene = scene
