@@ -277,6 +277,7 @@ class Answerers:
     def of(
         cls,
         gaussians: Gaussians,
+        train: list[Camera],
         test: list[Camera],
         tfcc: TfccModel | None,
         direct: DirectModel | None,
@@ -287,7 +288,7 @@ class Answerers:
             rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(gaussians)
             vis = VisibilityCache(rast)
         # every prompt lifts the same training views and renders the same test views
-        rast.keep_views(KEEP_VIEWS_BYTES)
+        rast.keep_views(KEEP_VIEWS_BYTES, [*train, *test])
         return cls(tfcc, direct, rast, vis, {c.name: c for c in test})
 
     def predict(self, variant: str, q: Question) -> Prediction:

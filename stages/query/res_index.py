@@ -730,7 +730,11 @@ class GrowingIndex:
     `ResIndex` (path, bundle_sha256, views, image_side)."""
 
     def __init__(
-        self, path: Path, scene: Scene, bundle: Bundle, report: Report = SILENT,
+        self,
+        path: Path,
+        scene: Scene,
+        bundle: Bundle,
+        report: Report = SILENT,
         wait: float = INDEX_WAIT_S,
     ):
         self.path = Path(path)

@@ -7,6 +7,7 @@ given, renders instead; the rasteriser never imports one itself (see `gsplat_bac
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Iterable
 from typing import Any, Protocol
 
 import numba
@@ -61,6 +62,7 @@ class Rasterizer:
         # (what, camera) -> (bytes, Projected and Bins, or View), least recently used first
         self._kept: OrderedDict[tuple, tuple[int, Any]] = OrderedDict()
         self._keep_bytes = 0
+        self._keepable: set[tuple] = set()
 
     @property
     def backend_name(self) -> str:
@@ -71,13 +73,15 @@ class Rasterizer:
         """From a `stages.scene.gaussians.Gaussians`."""
         return cls(g.means, g.quats, g.scales, g.opacities, g.sh, g.valid, backend)
 
-    def keep_views(self, max_bytes: int) -> None:
-        """Keep each camera's projection and tiles (`prepare`, `view`) for the calls after, up
-        to `max_bytes` in all, the least recently used going first (0: keep none, the
-        default). A process that answers prompt after prompt asks the same cameras each time
-        (goi view, goi eval: the views lifted, the masks at the test views); the kept arrays
-        are read-only, and the scene's Gaussians must not change while they are kept."""
+    def keep_views(self, max_bytes: int, cameras: Iterable[Camera]) -> None:
+        """Keep the projection and tiles (`prepare`, `view`) of these `cameras` for the calls
+        after, up to `max_bytes` in all, the least recently used going first (0: keep none,
+        the default). A process that answers prompt after prompt asks the same cameras each
+        time (goi view, goi eval: the training views lifted, the masks at the test views);
+        other cameras (the browser's, which moves) are not kept. The kept arrays are
+        read-only, and the scene's Gaussians must not change while they are kept."""
         self._keep_bytes = max(0, int(max_bytes))
+        self._keepable = {_camera_key(c) for c in cameras}
         self._evict()
 
     def kept_bytes(self) -> int:
@@ -108,9 +112,15 @@ class Rasterizer:
         return out
 
     def _keep(self, key: tuple, value: Any, parts: list[Any]) -> None:
-        if self._keep_bytes <= 0:
+        if self._keep_bytes <= 0 or key[1:] not in self._keepable:
             return
-        arrays = [a for a in parts if isinstance(a, np.ndarray)]
+        # a projection may hand the scene's own arrays through (its opacities): those are
+        # neither counted nor made read-only
+        own = (self.means, self.quats, self.scales, self.opacities, self.sh, self.valid)
+        arrays = [
+            a for a in parts
+            if isinstance(a, np.ndarray) and not any(np.may_share_memory(a, o) for o in own)
+        ]  # fmt: skip
         size = sum(a.nbytes for a in arrays)
         if size > self._keep_bytes:
             return

@@ -250,7 +250,7 @@ class ViewSession:
         else:
             self.rast = Rasterizer.from_gaussians(scene.gaussians)
         # prompt after prompt lifts the same training views and renders the same cameras
-        self.rast.keep_views(KEEP_VIEWS_BYTES)
+        self.rast.keep_views(KEEP_VIEWS_BYTES, scene.views("all"))
         if sources.text_embeddings is not None:  # read once: a bad file is refused now
             from stages.query.prompts import load_text_embeddings
 

@@ -321,7 +321,7 @@ def test_a_process_reads_each_view_once_to_check_it(full_index, tmp_path, monkey
     with h5py.File(idx, "r+") as f:
         ds = f["views"][view][key]
         ds[(0,) * ds.ndim] = np.nan
-    st = os.stat(idx)  # another write, even within the clock's tick
+    st = os.stat(idx)  # a write moves the mtime; moved here so the clock's tick cannot hide it
     os.utime(idx, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
     with pytest.raises(GoiError, match="NaN or infinite"):
         check_values(load_res_index(idx), index.spec)

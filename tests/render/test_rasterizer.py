@@ -181,10 +181,10 @@ def test_kept_views_are_the_same_arrays_read_only_and_within_budget(tmp_path):
     g, r = _scene(tmp_path, n=400)
     plain = Rasterizer.from_gaussians(g)
     cams = [front_camera(64, 48), front_camera(61, 45), front_camera(64, 48, name="c1")]
-    per_camera = sum(a.nbytes for a in [*vars(plain.prepare(cams[0])[0]).values(),
-                                        *vars(plain.prepare(cams[0])[1]).values()]
-                     if isinstance(a, np.ndarray))  # fmt: skip
-    r.keep_views(1 << 30)
+    p0, b0 = plain.prepare(cams[0])
+    own = sum(a.nbytes for a in [*vars(p0).values(), *vars(b0).values()]
+              if isinstance(a, np.ndarray) and not np.may_share_memory(a, r.opacities))  # fmt: skip
+    r.keep_views(1 << 30, cams)
     for cam in cams:
         (p1, b1), (p0, b0) = r.prepare(cam), plain.prepare(cam)
         _same(p1, p0), _same(b1, b0)
@@ -194,20 +194,32 @@ def test_kept_views_are_the_same_arrays_read_only_and_within_budget(tmp_path):
     # a camera asked again gets what was kept, which no caller can write into
     assert r.prepare(cams[0])[0] is r.prepare(cams[0])[0]
     assert r.view(cams[2]) is r.view(cams[2])
-    with pytest.raises(ValueError):
-        r.prepare(cams[0])[0].means2d[0, 0] = 1.0
+    for a in (r.prepare(cams[0])[0].means2d, r.prepare(cams[0])[1].ids, r.view(cams[2]).gaussians,
+              r.view(cams[2]).proj.conics, r.view(cams[2]).bins.offsets):  # fmt: skip
+        with pytest.raises(ValueError):
+            a[0] = 1
+    # the scene's own arrays, which a projection hands through, stay the scene's to write
+    assert g.opacities.flags.writeable and r.opacities.flags.writeable
     # the two cameras named c0 differ in size: each has its own projection
     assert r.prepare(cams[0])[1].ids.size != r.prepare(cams[1])[1].ids.size
+    # a camera not named to keep_views (the browser's, moving) is not kept, even under the
+    # name and size of one that is: its pose decides
+    moved = front_camera(64, 48)
+    moved.t = moved.t + np.array([0.05, 0.0, 0.0])
+    (pm, bm), (pp, bp) = r.prepare(moved), plain.prepare(moved)
+    _same(pm, pp), _same(bm, bp)
+    assert r.prepare(moved)[0] is not pm and pm.means2d.flags.writeable
+    assert not np.array_equal(pm.means2d, r.prepare(cams[0])[0].means2d)
     # the budget: the least recently used go first; 0 keeps nothing
-    r.keep_views(int(per_camera * 1.5))
-    assert 0 < r.kept_bytes() <= per_camera * 1.5
+    r.keep_views(int(own * 1.5), cams)
+    assert 0 < r.kept_bytes() <= own * 1.5
     kept = r.prepare(cams[1])
     r.prepare(cams[0])  # now the most recently used two, over budget together: c0's stays
     assert r.prepare(cams[0])[0] is r.prepare(cams[0])[0]
     assert r.prepare(cams[1]) is not kept
-    r.keep_views(0)
+    r.keep_views(0, cams)
     assert r.kept_bytes() == 0 and r.prepare(cams[0]) is not r.prepare(cams[0])
     # rendering through kept views gives the same image
-    r.keep_views(1 << 30)
+    r.keep_views(1 << 30, cams)
     for _ in range(2):
         np.testing.assert_array_equal(r.render_rgb(cams[1]).image, plain.render_rgb(cams[1]).image)
