@@ -664,7 +664,7 @@ def run_eval(
         f"eval: room {room.dir} ({scene.gaussians.count} Gaussians, {len(room.prompts)} prompts)"
     )
     tfcc, direct = _fit_models(room, features, work, variants, p, timer, report)
-    models = Answerers.of(scene.gaussians, scene.views("train"), scene.views("test"), tfcc, direct)
+    models = Answerers.of(scene, tfcc, direct)
     if bundle is not None and not sources:  # one bundle, its sessions shared by every prompt
         sources = {p.id: ResModel(bundle, p.text, models.rast) for p in room.prompts}
     with timer("contribution_3d"):

@@ -40,7 +40,7 @@ from stages.query.res import NothingFound, ResFiles, ResSource, choose_views
 from stages.query.selection import plane_probability, select
 from stages.render.rasterizer import KEEP_VIEWS_BYTES, Rasterizer
 from stages.scene.cameras import Camera
-from stages.scene.gaussians import Gaussians
+from stages.scene.scene import Scene
 from stages.semantics.decode import COVERED_ALPHA, DecodedView, SemanticRenderer
 from stages.semantics.field import Field
 
@@ -276,19 +276,18 @@ class Answerers:
     @classmethod
     def of(
         cls,
-        gaussians: Gaussians,
-        train: list[Camera],
-        test: list[Camera],
+        scene: Scene,
         tfcc: TfccModel | None,
         direct: DirectModel | None,
     ) -> Answerers:
         if tfcc is not None:
             rast, vis = tfcc.renderer.rast, tfcc.visibility
         else:
-            rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(gaussians)
+            rast = direct.renderer.rast if direct else Rasterizer.from_gaussians(scene.gaussians)
             vis = VisibilityCache(rast)
+        test = scene.views("test")
         # every prompt lifts the same training views and renders the same test views
-        rast.keep_views(KEEP_VIEWS_BYTES, [*train, *test])
+        rast.keep_views(KEEP_VIEWS_BYTES, [*scene.views("train"), *test])
         return cls(tfcc, direct, rast, vis, {c.name: c for c in test})
 
     def predict(self, variant: str, q: Question) -> Prediction:

@@ -317,13 +317,7 @@ def run_benchmark(
         )
         wdir = work / name
         tfcc, direct = _fit_models(s.room, s.features, wdir, variants, p, timer, report)
-        models = Answerers.of(
-            s.room.scene.gaussians,
-            s.room.scene.views("train"),
-            s.room.scene.views("test"),
-            tfcc,
-            direct,
-        )
+        models = Answerers.of(s.room.scene, tfcc, direct)
         if bundle is not None:
             sources = {q.id: ResModel(bundle, q.text, models.rast) for q in s.bench.queries}
         entry: dict = {
@@ -350,13 +344,7 @@ def run_benchmark(
                 sdir = wdir / f"seed-{seed}"
                 report.log(f"eval: {name}: {SEEDED} with seed {seed} (--seeds)")
                 tf, _ = _fit_models(s.room, s.features, sdir, [SEEDED], sp, timer, report)
-                m = Answerers.of(
-                    s.room.scene.gaussians,
-                    s.room.scene.views("train"),
-                    s.room.scene.views("test"),
-                    tf,
-                    None,
-                )
+                m = Answerers.of(s.room.scene, tf, None)
                 runs[seed], _ = _answer(benchmark, s, m, sources, SEEDED, sdir, sp, timer, report)
             entry["seeds"] = seed_spread(runs)
         doc["benchmark"]["scenes"][name] = entry
