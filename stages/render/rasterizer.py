@@ -79,7 +79,9 @@ class Rasterizer:
         the default). A process that answers prompt after prompt asks the same cameras each
         time (goi view, goi eval: the training views lifted, the masks at the test views);
         other cameras (the browser's, which moves) are not kept. The kept arrays are
-        read-only, and the scene's Gaussians must not change while they are kept."""
+        read-only, and the scene's Gaussians must not change while they are kept. One thread
+        at a time: goi view's renders and answers already take turns (stages.view.worker's
+        gate), and nothing else renders from two threads."""
         self._keep_bytes = max(0, int(max_bytes))
         self._keepable = {_camera_key(c) for c in cameras}
         self._evict()
