@@ -234,11 +234,7 @@ class IndexWriter:
         self.option = option
         self.wait_option = wait_option
         check_output_name(self.out, option)
-        if self.out.is_symlink():  # publishing renames over it: the link would be replaced
-            raise GoiError(
-                f"{option}: {self.out} is a symbolic link; goi adds views to an index only as a "
-                "regular file (name the file it points to)"
-            )
+        _not_a_link(self.out, option)
         check_output_name(self.partial, option)
         self.spec = bundle_spec(bundle)
         self.digests = image_digests(scene, self.cams)
@@ -394,6 +390,16 @@ class IndexWriter:
         # read back as a query will read it (resumed views included) before it is renamed
         check_values(load_res_index(self.partial), self.spec)
         finish_partial(self.partial, self.out)
+
+
+def _not_a_link(path: Path, option: str) -> None:
+    """An index that views are added to is a regular file: publishing renames the grown index
+    over `path`, which would replace a symbolic link, not follow it."""
+    if path.is_symlink():
+        raise GoiError(
+            f"{option}: {path} is a symbolic link; goi adds views to an index only as a "
+            "regular file (name the file it points to)"
+        )
 
 
 def _copy_into(src: Path, partial: Path) -> None:
@@ -639,13 +645,14 @@ def load_res_index(path: str | os.PathLike[str]) -> ResIndex:
 #: that opens one index for prompt after prompt (goi view, goi eval) reads each view's arrays
 #: once to check them, not at every open (8 views of OWLv2 + SAM 2.1: 190 MB a prompt); a file
 #: written again is another identity (inode, size, mtime), and `ResIndex.image_side` checks
-#: what it reads every time.
-_CHECKED: dict[tuple[str, int, int, int, int], set[str]] = {}
+#: what it reads every time. The identity is the file's, not its name's: the partial file an
+#: `IndexWriter` checked before renaming it over the index is not read again under that name.
+_CHECKED: dict[tuple[int, int, int, int], set[str]] = {}
 
 
-def _identity(path: Path) -> tuple[str, int, int, int, int]:
+def _identity(path: Path) -> tuple[int, int, int, int]:
     st = os.stat(path)
-    return (str(Path(path).resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
 
 
 def check_values(index: ResIndex, spec: dict[str, tuple[tuple[int, ...], str]]) -> None:
@@ -752,12 +759,7 @@ class GrowingIndex:
             raise GoiError(f"--res-index: {self.path}: directory {parent} does not exist")
         self.published = self._open()
         if not self.complete:
-            if self.path.is_symlink():  # before any work: adding views renames over the link
-                raise GoiError(
-                    f"--res-index: {self.path} is a symbolic link to an index that lacks views; "
-                    "goi adds views to an index only as a regular file (name the file it "
-                    "points to)"
-                )
+            _not_a_link(self.path, "--res-index")  # before any work
             for c in self.cams:  # every photo it may index found before any work
                 scene.image_path(c)
 
