@@ -24,8 +24,7 @@ from stages.models.export import ModelExportParams, ModelExportRun
 from stages.query.res_index import ResIndexRun
 from stages.semantics.codebook import CodebookParams, CodebookRun
 from stages.semantics.extract import ExtractParams, ExtractRun
-from stages.semantics.field_model import FieldParams
-from stages.semantics.fit_field import FieldRun
+from stages.semantics.field_params import FieldParams, FieldRun
 
 
 @click.command("extract", short_help="Write the features artifact of the scene's training views.")

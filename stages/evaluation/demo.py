@@ -35,8 +35,7 @@ from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.extract import ExtractParams, ExtractRun, import_features
 from stages.semantics.field import load_field
-from stages.semantics.field_model import FieldParams
-from stages.semantics.fit_field import FieldRun, fit_field
+from stages.semantics.field_params import FieldParams, FieldRun
 
 DEMO_SCENE = Path(__file__).resolve().parents[2] / "goi_cli" / "demo_scene"
 
@@ -110,6 +109,9 @@ def _chosen_prompts(prompts: list[Prompt], wanted: str | None) -> list[Prompt]:
 
 
 def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult:
+    # torch comes with the fit, not with every goi command that imports this module
+    from stages.semantics.fit_field import fit_field
+
     check_params(p)
     scene_dir = DEMO_SCENE
     if not (scene_dir / "point_cloud.ply").is_file():

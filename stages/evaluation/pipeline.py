@@ -64,8 +64,7 @@ from stages.semantics.decode import SemanticRenderer
 from stages.semantics.extract import ExtractParams, ExtractRun, feature_files, import_features
 from stages.semantics.feature_files import load_feature_file
 from stages.semantics.field import load_field
-from stages.semantics.field_model import FieldParams
-from stages.semantics.fit_field import FieldRun, field_inputs, fit_field
+from stages.semantics.field_params import FieldParams, FieldRun
 from stages.semantics.kmeans import even_subset
 
 
@@ -169,6 +168,9 @@ def _fit_models(
     if not kinds:
         return None, None
     assert features is not None  # run_eval asks for it when a variant needs a field
+    # torch comes with the fit, not with every goi command that imports this module
+    from stages.semantics.fit_field import field_inputs, fit_field
+
     feats, cb = work / "features.h5", work / "codebook.h5"
     cameras = FitCameras(work, scene)
     cameras.record()  # what this run makes records these cameras' digest

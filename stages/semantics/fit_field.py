@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,7 +21,7 @@ from stages.core.arrays import unit_norms
 from stages.core.artifacts import check_writable, input_digest
 from stages.core.errors import GoiError
 from stages.core.files import check_output_name, output_lock, refuse_if_input, refuse_inputs
-from stages.core.params import NON_NEGATIVE, POSITIVE, check_params
+from stages.core.params import check_params
 from stages.core.report import SILENT, Report, size_text
 from stages.render.constants import ALPHA_MIN
 from stages.scene.cameras import Camera
@@ -33,44 +33,8 @@ from stages.semantics.feature_renderer import FeatureRenderer, GradBuffers
 from stages.semantics.features import feature_grid, feature_views, load_features
 from stages.semantics.field import save_field
 from stages.semantics.field_model import FieldModel, FieldParams, field_losses
+from stages.semantics.field_params import FieldRun
 from stages.semantics.memory import cache_floor, memory_budget, working_set
-
-
-@dataclass
-class FieldRun:
-    out: Path
-    """Field artifact to write (HDF5, schema goi.field)."""
-    cache: Path | None = None
-    """Blend cache file; default blend_cache.h5 beside the output. Reused when it matches."""
-    checkpoint_every: Annotated[int, NON_NEGATIVE] = 250
-    """Write <out>.ckpt every this many iterations (0: never)."""
-    resume: bool = False
-    """Continue from <out>.ckpt when it exists (and was made from the same inputs)."""
-    max_memory_gib: Annotated[float, NON_NEGATIVE] = 0.0
-    """Memory the fit may use (GiB; 0: three quarters of this machine's). When the blend
-    cache does not fit beside the rest, it is streamed from disk a step's views at a time; a
-    budget below even that is refused before any work."""
-    force: bool = False
-    """Replace an existing output."""
-    distributed: bool = False
-    """Split the Gaussians across the ranks torchrun started (`torchrun --nproc-per-node N
-    -m goi fit-field --distributed ...`): each rank keeps its Gaussians' features, Adam
-    state and blend-cache columns, and one all_reduce per step sums the rendered features.
-    Gives the single-process field within float rounding (docs/scaling.md)."""
-    dist_timeout_s: Annotated[float, POSITIVE] = 600.0
-    """--distributed: seconds the rendezvous and every collective (all_reduce, barrier) may
-    wait for the other ranks before the run fails."""
-    threads: Annotated[int, NON_NEGATIVE] = 0
-    """--distributed: CPU threads per rank (0: this machine's cores divided by torchrun's
-    local ranks, so that the ranks of a node do not oversubscribe its cores)."""
-
-    @property
-    def cache_path(self) -> Path:
-        return self.cache or self.out.with_name("blend_cache.h5")
-
-    @property
-    def checkpoint(self) -> Path:
-        return self.out.with_name(self.out.name + ".ckpt")
 
 
 def field_inputs(scene: Scene, features_path: Path, codebook_path: Path) -> dict[str, str]:

@@ -7,18 +7,24 @@ an emptied cluster is re-seeded with the sample its centre explains worst.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 
 from stages.core.errors import GoiError
 from stages.core.report import SILENT, Report
 from stages.semantics.features import FeatureMaps
+
+if TYPE_CHECKING:  # torch is imported where k-means runs: every goi command imports this module
+    import torch
 
 
 def _assign(
     x: torch.Tensor, c: torch.Tensor, chunk: int = 65536
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Best centre [M] and its cosine [M] for unit rows x [M, D] against unit centres c [K, D]."""
+    import torch
+
     best, sims = [], []
     for s in range(0, x.shape[0], chunk):
         v, i = (x[s : s + chunk] @ c.T).max(dim=1)
@@ -36,6 +42,8 @@ def spherical_kmeans(
     report: Report = SILENT,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Cluster unit rows x [M, D] into k unit centres [k, D]; returns centres and counts [k]."""
+    import torch
+
     if x.shape[0] < k:
         raise GoiError(
             f"--entries: only {x.shape[0]} feature samples for {k} codebook entries: lower "

@@ -62,3 +62,14 @@ def test_inspect_dev_room_ply_shows_no_errors(capsys):
     assert main(["inspect", str(DEV_ROOM / "point_cloud.ply")]) == 0
     out = capsys.readouterr().out
     assert "gaussians     121022" in out and "0 errors" in out
+
+
+def test_the_command_line_is_built_without_torch():
+    """torch takes ~1 s to import; only the commands that fit a field or run it need it, so
+    building the command line (every `goi ...` call) must not import it."""
+    code = (
+        "import sys, goi_cli.main\n"
+        "print(sorted(m for m in ('torch', 'transformers') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

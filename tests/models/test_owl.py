@@ -12,6 +12,7 @@ from goi_cli.main import main
 from stages.core.errors import GoiError
 from stages.models import res_processing as rp
 from stages.models.bundle import load_bundle
+from stages.models.export.attention import fuse_attention
 from stages.models.onnx_io import session
 from tests.models.split_check import owl_split_equals_ground
 
@@ -80,6 +81,24 @@ def test_owl_sam_split_equals_ground(owl_bundle):
         "sam_embedding": ((32, 8, 8), "float16"),
     }
     owl_split_equals_ground(bundle, ("a red chair", "the green sofa", "the lamp"), 2e-3)
+
+
+def test_owl_image_graph_runs_fused_attention(owl_bundle, res_checkpoints, tmp_path):
+    onnx = pytest.importorskip("onnx")
+    config = json.loads((res_checkpoints["owlv2"] / "config.json").read_text())
+    layers = config["vision_config"]["num_hidden_layers"]
+    ops = [n.op_type for n in onnx.load(owl_bundle / "owl_image.onnx").graph.node]
+    m = json.loads((owl_bundle / "manifest.json").read_text())
+    # every layer's scores in one blockwise kernel; the split test holds it to transformers
+    assert ops.count("MultiHeadAttention") == layers == 2
+    assert m["export_checks"]["owl_image.onnx"]["fused_attention"] == layers
+    assert "Softmax" not in ops and "Attention" not in ops
+    # a graph with no self-attention of its pattern is left byte for byte
+    text = tmp_path / "owl_text.onnx"
+    shutil.copy(owl_bundle / "owl_text.onnx", text)
+    before = text.read_bytes()
+    assert fuse_attention(text, 2, 32) == 0
+    assert text.read_bytes() == before
 
 
 def test_owl_exports_are_checked_and_bad_manifests_refused(owl_bundle, tmp_path):

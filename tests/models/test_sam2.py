@@ -103,6 +103,15 @@ def test_owl_sam2_bundle_equals_torch(res_checkpoints, sam2_checkpoint, owl_sam2
     assert m["owl_sam"]["sam_decoder"]["layout"] == "sam2"
     for name in ("sam_encoder.onnx", "sam_decoder.onnx"):  # checked against torch at export
         assert m["export_checks"][name]["max_abs_error"] < 1e-3
+    # every Hiera block's attention, the q-pooling ones too, runs as onnxruntime's fused op
+    onnx = pytest.importorskip("onnx")
+    ops = [n.op_type for n in onnx.load(owl_sam2 / "sam_encoder.onnx").graph.node]
+    assert (
+        ops.count("MultiHeadAttention")
+        == 5
+        == m["export_checks"]["sam_encoder.onnx"]["fused_attention"]
+    )
+    assert "Softmax" not in ops
     rng = np.random.default_rng(11)
     found = 0
     for hw in ((96, 128), (130, 90)):

@@ -11,7 +11,7 @@ another thread count (docs/models.md).
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -366,10 +366,13 @@ def export_checked(
     outputs: Sequence[str],
     axes: dict,
     opset: int,
+    fuse: Callable[[Path], int] | None = None,
 ) -> tuple[list[list[np.ndarray]], dict]:
     """`module` exported to `path` (its inputs named and ordered as the feeds' keys, its
     `outputs`), then run in onnxruntime against torch on every feed; returns torch's outputs
-    per feed and the largest errors over the feeds."""
+    per feed and the largest errors over the feeds. `fuse` rewrites the file's attention into
+    onnxruntime's fused op before the check (`attention.py`); the count of layers it rewrote
+    is recorded as `fused_attention`."""
     import torch
 
     with torch.no_grad():
@@ -377,8 +380,10 @@ def export_checked(
     wants = [[t.numpy() for t in (o if isinstance(o, tuple) else (o,))] for o in outs]
     args = tuple(map(torch.from_numpy, feeds[0].values()))
     onnx_export(module, args, path, (list(feeds[0]), list(outputs)), axes, opset)
+    fused = None if fuse is None else fuse(path)
     found = [check(path, f, w) for f, w in zip(feeds, wants, strict=True)]
-    return wants, {k: max(f[k] for f in found) for k in found[0]}
+    checks = {k: max(f[k] for f in found) for k in found[0]}
+    return wants, checks if fused is None else {**checks, "fused_attention": fused}
 
 
 def onnx_export(model: Any, args: tuple, path: Path, names: tuple, axes: dict, opset: int) -> None:

@@ -16,10 +16,12 @@ The class logits, (class_embeds . query + shift) x scale, and their sigmoid are 
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from stages.models import res_processing as rp
+from stages.models.export.attention import fuse_attention
 from stages.models.export.common import (
     export_checked,
     export_text_graph,
@@ -83,8 +85,16 @@ def export_owlv2(model: Any, src: Path, tmp: Path, tokenizer: str, opset: int) -
     image, text = modules(model)
     pixels = rp.owl_inputs(check_image(size * 3 // 4, size), size, stats["mean"], stats["std"])
     checks = {}
+    vision = model.config.vision_config
+    heads, width = int(vision.num_attention_heads), int(vision.hidden_size)
     (want,), checks["owl_image.onnx"] = export_checked(
-        image, [{"pixel_values": pixels}], tmp / "owl_image.onnx", IMAGE_OUTPUTS, {}, opset
+        image,
+        [{"pixel_values": pixels}],
+        tmp / "owl_image.onnx",
+        IMAGE_OUTPUTS,
+        {},
+        opset,
+        fuse=partial(fuse_attention, num_heads=heads, hidden=width),
     )
     _, checks["owl_text.onnx"] = export_text_graph(
         text, tokens, tmp / "owl_text.onnx", "query_embeds", opset

@@ -90,15 +90,17 @@ def export_split(
     maps: tuple[str, ...],
     tmp: Path,
     opset: int,
+    fuse_encoder: Callable[[Path], int] | None = None,
 ) -> dict:
     """sam_encoder.onnx (pixel_values -> the image-side `maps`) and sam_decoder.onnx (the maps
     and input_boxes [1, B, 4], B dynamic -> pred_masks, iou_scores), each run in onnxruntime
     against torch on a test card (`pixels`, of an image `image_hw`) and on 2 and 1 boxes put in
-    the encoder's frame by `to_frame`; returns the checks. SAM's and SAM 2's split."""
+    the encoder's frame by `to_frame`; returns the checks. SAM's and SAM 2's split.
+    `fuse_encoder`: the encoder's attention rewrite (`export_checked`'s `fuse`)."""
     size = int(pixels.shape[-1])
     checks = {}
     (image_side,), checks["sam_encoder.onnx"] = export_checked(
-        encoder, [{"pixel_values": pixels}], tmp / "sam_encoder.onnx", maps, {}, opset
+        encoder, [{"pixel_values": pixels}], tmp / "sam_encoder.onnx", maps, {}, opset, fuse_encoder
     )
     boxes = np.asarray([[10, 20, 300, 240], [200, 100, 620, 470]], np.float32) * (size / 1024)
     feed_maps = dict(zip(maps, image_side, strict=True))

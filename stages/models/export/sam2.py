@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from stages.models import res_processing as rp
+from stages.models.export.attention import fuse_hiera_attention
 from stages.models.export.common import image_spec, image_stats
 from stages.models.export.grounding_dino import check_image
 from stages.models.export.sam import export_split
@@ -79,7 +80,15 @@ def export_sam2(model: Any, src: Path, tmp: Path, opset: int) -> tuple[dict, dic
     rgb = check_image(size * 3 // 4, size, seed=1)
     pixels = rp.sam2_inputs(rgb, size, stats["mean"], stats["std"])
     checks = export_split(
-        encoder, decoder, pixels, rgb.shape[:2], rp.sam2_boxes, ENCODER_OUTPUTS, tmp, opset
+        encoder,
+        decoder,
+        pixels,
+        rgb.shape[:2],
+        rp.sam2_boxes,
+        ENCODER_OUTPUTS,
+        tmp,
+        opset,
+        fuse_encoder=fuse_hiera_attention,
     )
     enc_spec = image_spec(
         "sam_encoder.onnx",
