@@ -1,4 +1,5 @@
-"""The semantic field's model, losses and hyperparameters (paper section 3.4 and appendix).
+"""The semantic field's model and losses (paper section 3.4 and appendix; the hyperparameters
+are `field_params.FieldParams`).
 
 Per Gaussian a low-dimensional feature f (zero at start), rendered by alpha blending to f_hat; a
 linear decoder D: S -> N gives logits e; the decoded feature is T[argmax e] with T the codebook.

@@ -5,14 +5,16 @@ score tensor, and onnxruntime runs those as three kernels that write the scores 
 them back: at OWLv2-B/16's 3600 tokens, 12 x 3600 x 3600 floats a layer, and the three took
 half of the image graph's time at a third of its arithmetic. onnxruntime's com.microsoft
 MultiHeadAttention runs it blockwise instead (flash attention on the CPU, fused kernels on CUDA).
-OWLv2-B/16 at 960 on 2 cores: 4.1 s an image against 5.0 s, outputs within 1e-6 of the unfused
+OWLv2-B/16 at 960 on 2 cores: 4.1 s an image against 5.0 s, outputs within 2e-6 of the unfused
 graph (docs/models.md, "Fused attention").
 
 onnxruntime's own transformer optimizer finds the attention (its CLIP pattern, which OWLv2's
 vision tower shares) and writes the packed `Attention` op, whose CPU kernel is not the
 blockwise one (6.5 s an image): each becomes one MatMul for Q, K and V together, a Split and a
-MultiHeadAttention that adds the bias. The export's check then holds the rewritten graph to
-torch like any other.
+MultiHeadAttention that adds the bias. The optimizer's other fusions (LayerNorm with the
+residual add, GELU with its bias) are kept too: onnxruntime makes the same ones when it loads a
+graph. `export_checked` fuses a copy and keeps it only when it loads and passes the check
+against torch; otherwise the graph stays as exported, with a warning.
 
 SAM 2's Hiera writes its attention on [B, S, heads, d] tensors the optimizer has no pattern
 for; `fuse_hiera_attention` matches the core (transposes, MatMul, scale, Softmax, MatMul,
@@ -23,54 +25,63 @@ see docs/models.md.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from stages.core.errors import GoiError
-
 #: protobuf's limit on one file; a larger graph keeps its weights outside, which this rewrite
 #: does not carry (the ViTs it serves are far below it)
 MAX_BYTES = 2**31 - 2**26
+MS_DOMAIN = "com.microsoft"
 
 
-def _onnx() -> Any:
+@contextmanager
+def _quiet() -> Iterator[None]:
+    """onnxruntime's fusion modules log each pattern they try (under their own module names)."""
+    before = logging.root.manager.disable
+    logging.disable(logging.WARNING)
     try:
-        import onnx
-    except ImportError:
-        raise GoiError(
-            "goi export-model needs the onnx package, part of the optional extra goi[export]: "
-            "pip install 'goi[export]'"
-        ) from None
-    return onnx
+        yield
+    finally:
+        logging.disable(before)
 
 
 def fuse_attention(path: Path, num_heads: int, hidden: int) -> int:
     """Rewrite the ONNX file at `path` in place; returns how many attention layers now run as
-    MultiHeadAttention (0: the optimizer found none, the file is left as it was)."""
+    MultiHeadAttention (0: the optimizer found none, the file is left as it was). Needs the
+    onnx package (ImportError without it)."""
     if path.stat().st_size >= MAX_BYTES:
         return 0
-    onnx = _onnx()
+    import onnx
     from onnxruntime.transformers.optimizer import optimize_model
 
-    # the optimizer logs each fusion it tries at INFO and WARNING
-    logging.getLogger("onnxruntime.transformers").setLevel(logging.ERROR)
-    opt = optimize_model(
-        str(path), model_type="clip", num_heads=num_heads, hidden_size=hidden, opt_level=0
-    )
+    with _quiet():
+        opt = optimize_model(
+            str(path), model_type="clip", num_heads=num_heads, hidden_size=hidden, opt_level=0
+        )
     model = opt.model
-    n = _packed_to_mha(model, onnx)
+    n = _packed_to_mha(model)
     if n:
+        _declare_ms_domain(model)
         onnx.save(model, str(path))
     return n
 
 
-def _packed_to_mha(model: Any, onnx: Any) -> int:
-    """Each com.microsoft Attention(x, W [D, 3D], b [3D]) of `model` -> MatMul(x, W), Split into
-    Q, K, V [1, S, D] and MultiHeadAttention(Q, K, V, b). A packed op with a mask, past state or
-    other attributes stays as it is."""
+def _declare_ms_domain(model: Any) -> None:
     from onnx import helper
+
+    if not any(o.domain == MS_DOMAIN for o in model.opset_import):
+        model.opset_import.append(helper.make_opsetid(MS_DOMAIN, 1))
+
+
+def _packed_to_mha(model: Any) -> int:
+    """Each com.microsoft Attention(x, W [D, 3D], b [3D]) -> its output of `model` becomes
+    MatMul(x, W), Split into Q, K, V [1, S, D] and MultiHeadAttention(Q, K, V, b). A packed op
+    with a mask, past state, a second output or other attributes stays as it is."""
+    from onnx import TensorProto, helper
 
     graph = model.graph
     weights = {t.name: t for t in graph.initializer}
@@ -80,11 +91,13 @@ def _packed_to_mha(model: Any, onnx: Any) -> int:
         inputs = list(node.input)
         while inputs and not inputs[-1]:  # optional inputs left out may be written as ""
             inputs.pop()
+        outputs = [o for o in node.output if o]
         if (
             node.op_type != "Attention"
-            or node.domain != "com.microsoft"
+            or node.domain != MS_DOMAIN
             or not set(attrs) <= {"num_heads", "scale"}
             or len(inputs) != 3
+            or outputs != list(node.output[:1])
             or inputs[1] not in weights
             or len(weights[inputs[1]].dims) != 2
         ):
@@ -93,7 +106,7 @@ def _packed_to_mha(model: Any, onnx: Any) -> int:
         x, w, b = inputs
         d = int(weights[w].dims[1]) // 3
         p = node.name or node.output[0]
-        sizes = helper.make_tensor(f"{p}/qkv_sizes", onnx.TensorProto.INT64, [3], [d, d, d])
+        sizes = helper.make_tensor(f"{p}/qkv_sizes", TensorProto.INT64, [3], [d, d, d])
         graph.initializer.append(sizes)
         q, k, v = f"{p}/q", f"{p}/k", f"{p}/v"
         nodes += [
@@ -104,11 +117,11 @@ def _packed_to_mha(model: Any, onnx: Any) -> int:
             helper.make_node(
                 "MultiHeadAttention",
                 [q, k, v, b],
-                list(node.output),
-                domain="com.microsoft",
+                outputs,
+                domain=MS_DOMAIN,
                 name=f"{p}/mha",
                 **attrs,
-            ),
+            ),  # fmt: skip
         ]
         n += 1
     del graph.node[:]
@@ -118,66 +131,106 @@ def _packed_to_mha(model: Any, onnx: Any) -> int:
 
 def fuse_hiera_attention(path: Path) -> int:
     """Rewrite the ONNX file at `path` in place: each attention of SAM 2's Hiera (and any
-    graph that writes attention the same way) as one MultiHeadAttention; returns how many."""
+    graph that writes attention the same way) as one MultiHeadAttention; returns how many.
+    Needs the onnx package (ImportError without it)."""
     if path.stat().st_size >= MAX_BYTES:
         return 0
-    onnx = _onnx()
+    import onnx
+
     model = onnx.load(str(path))
-    n = _bsnd_to_mha(model, onnx)
+    n = _bsnd_to_mha(model)
     if n:
+        _declare_ms_domain(model)
         onnx.save(model, str(path))
     return n
 
 
-def _bsnd_to_mha(model: Any, onnx: Any) -> int:
+def _perm(node: Any) -> list[int] | None:
+    """A Transpose's permutation (none given: the axes reversed, as ONNX says), else None."""
+    if node is None or node.op_type != "Transpose":
+        return None
+    given = next((list(a.ints) for a in node.attribute if a.name == "perm"), None)
+    return given if given is not None else [3, 2, 1, 0]
+
+
+def _read_inside(nodes: list[Any], attribute_proto: Any) -> list[str]:
+    """Every name the subgraphs of `nodes` read, at any depth (they may read the outer graph's
+    tensors by name)."""
+    names: list[str] = []
+    for node in nodes:
+        for a in node.attribute:
+            graphs = [a.g] if a.type == attribute_proto.GRAPH else list(a.graphs)
+            for g in graphs if a.type in (attribute_proto.GRAPH, attribute_proto.GRAPHS) else []:
+                names += [i for n in g.node for i in n.input if i]
+                names += _read_inside(list(g.node), attribute_proto)
+    return names
+
+
+def _cast_to(node: Any) -> int:
+    return int(next((a.i for a in node.attribute if a.name == "to"), 0))
+
+
+def _bsnd_to_mha(model: Any) -> int:
     """Match Transpose(q) [B, N, S, d] @ Transpose(k) [B, N, d, S] -> x scale -> Softmax ->
     (Casts) -> @ Transpose(v) -> Transpose back to [B, S, N, d], with q, k, v [B, S, N, d]
     and N read where the export split its fused QKV projection into heads; replace it by
-    Reshape to [B, S, N d], MultiHeadAttention and Reshape back. What does not match exactly is
-    left as it is."""
-    from onnx import helper, numpy_helper
+    Reshape to [B, S, N d], MultiHeadAttention and Reshape back, where the last transpose
+    was (every input the new nodes take is made before it). Every tensor inside the match must
+    have no other reader, a graph output or a subgraph's read included."""
+    from onnx import AttributeProto, TensorProto, helper, numpy_helper
 
     graph = model.graph
-    made = {o: node for node in graph.node for o in node.output}
-    users: dict[str, list[Any]] = {}
-    for node in graph.node:
-        for i in node.input:
-            users.setdefault(i, []).append(node)
+    # one list of the nodes: protobuf may hand out a new wrapper at each graph.node[i], and
+    # the match compares nodes by identity
+    every = list(graph.node)
+    made = {o: i for i, node in enumerate(every) for o in node.output if o}
+    readers: dict[str, list[int]] = {}
+    for i, node in enumerate(every):
+        for name in node.input:
+            if name:
+                readers.setdefault(name, []).append(i)
+    # what the graph's outputs and its subgraphs (If, Loop) read counts as read elsewhere
+    for name in [o.name for o in graph.output] + _read_inside(every, AttributeProto):
+        readers.setdefault(name, []).append(-1)
     consts = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
-    for node in graph.node:
+    for node in every:
         if node.op_type == "Constant" and node.attribute and node.attribute[0].name == "value":
             consts[node.output[0]] = numpy_helper.to_array(node.attribute[0].t)
 
-    def src(name: str) -> Any:  # the node that makes `name`, or None
-        return made.get(name)
+    def src(name: str) -> Any:  # typed Any: the node that makes `name`, or None
+        i = made.get(name)
+        return None if i is None else every[i]
 
-    def perm(node: Any) -> list[int] | None:
-        if node is None or node.op_type != "Transpose":
-            return None
-        return [list(a.ints) for a in node.attribute if a.name == "perm"][0]
-
-    def only_user(name: str) -> Any:
-        u = users.get(name, [])
-        return u[0] if len(u) == 1 else None
+    def sole(name: str) -> Any:
+        """The one node that reads `name` (a graph output counts as a reader), or None."""
+        r = readers.get(name, [])
+        return every[r[0]] if len(r) == 1 and r[0] >= 0 else None
 
     def heads(name: str) -> int | None:
         """N where [B, S, N, d] came from Reshape(qkv, [B, S, 3, N, -1]), Split, Squeeze."""
         sq = src(name)
         split = src(sq.input[0]) if sq is not None and sq.op_type == "Squeeze" else None
         rs = src(split.input[0]) if split is not None and split.op_type == "Split" else None
-        cat = src(rs.input[1]) if rs is not None and rs.op_type == "Reshape" else None
-        if cat is None or cat.op_type != "Concat" or len(cat.input) < 3:
+        if rs is None or rs.op_type != "Reshape":
             return None
-        tail = [consts.get(i) for i in cat.input[-3:]]
-        if any(t is None or t.size != 1 for t in tail):
+        if rs.input[1] in consts:  # a shape the exporter folded
+            tail = list(np.asarray(consts[rs.input[1]]).ravel()[-3:])
+        else:
+            cat = src(rs.input[1])
+            if cat is None or cat.op_type != "Concat" or len(cat.input) < 3:
+                return None
+            parts = [consts.get(i) for i in cat.input[-3:]]
+            if any(t is None or t.size != 1 for t in parts):
+                return None
+            tail = [np.asarray(t).ravel()[0] for t in parts if t is not None]
+        if len(tail) != 3:
             return None
-        three, n, rest = (int(np.asarray(t).ravel()[0]) for t in tail if t is not None)
+        three, n, rest = (int(v) for v in tail)
         return n if three == 3 and n > 0 and rest == -1 else None
 
     dead: set[int] = set()
-    new: list[Any] = []
-    count = 0
-    for sm in [x for x in graph.node if x.op_type == "Softmax"]:
+    at_back: dict[int, list[Any]] = {}  # the new nodes, by the index of the transpose back
+    for sm in [x for x in every if x.op_type == "Softmax"]:
         axis = [a.i for a in sm.attribute if a.name == "axis"]
         mul = src(sm.input[0])
         if axis not in ([-1], [3]) or mul is None or mul.op_type != "Mul":
@@ -186,83 +239,58 @@ def _bsnd_to_mha(model: Any, onnx: Any) -> int:
         mm1 = next((src(i) for i in mul.input if i not in consts), None)
         if len(scale_in) != 1 or mm1 is None or mm1.op_type != "MatMul":
             continue
-        tq, tk = src(mm1.input[0]), src(mm1.input[1])
-        if perm(tq) != [0, 2, 1, 3] or perm(tk) != [0, 2, 3, 1]:
+        if sole(mm1.output[0]) is not mul or sole(mul.output[0]) is not sm:
             continue
-        chain, at = [], only_user(sm.output[0])
+        tq, tk = src(mm1.input[0]), src(mm1.input[1])
+        if _perm(tq) != [0, 2, 1, 3] or _perm(tk) != [0, 2, 3, 1]:
+            continue
+        chain, at = [], sole(sm.output[0])
         # float32 to float32 (transformers' softmax(dtype=float32).to(q.dtype)): no-ops
-        while at is not None and at.op_type == "Cast" and _cast_to(at) == onnx.TensorProto.FLOAT:
+        while at is not None and at.op_type == "Cast" and _cast_to(at) == TensorProto.FLOAT:
             chain.append(at)
-            at = only_user(at.output[0])
+            at = sole(at.output[0])
         mm2 = at
         if mm2 is None or mm2.op_type != "MatMul" or mm2.input[0] != (chain or [sm])[-1].output[0]:
             continue
-        tv, back = src(mm2.input[1]), only_user(mm2.output[0])
-        if perm(tv) != [0, 2, 1, 3] or perm(back) != [0, 2, 1, 3]:
+        tv, back = src(mm2.input[1]), sole(mm2.output[0])
+        if _perm(tv) != [0, 2, 1, 3] or _perm(back) != [0, 2, 1, 3]:
             continue
         n = heads(tk.input[0])
         if n is None or heads(tv.input[0]) != n:
             continue
         core = [mm1, mul, sm, *chain, mm2, back]
-        core += [t for t in (tq, tk, tv) if len(users[t.output[0]]) == 1]
-        dead.update(id(x) for x in core)
+        core += [t for t in (tq, tk, tv) if len(readers[t.output[0]]) == 1]
+        dead.update(made[x.output[0]] for x in core)
         p = f"{sm.name or sm.output[0]}/mha"
         flat, split = f"{p}/bsd", f"{p}/bsnd"
         graph.initializer.append(numpy_helper.from_array(np.array([0, 0, -1], np.int64), flat))
         graph.initializer.append(numpy_helper.from_array(np.array([0, 0, n, -1], np.int64), split))
         qkv = [f"{p}/{c}" for c in "qkv"]
-        for t, name in zip((tq, tk, tv), qkv, strict=True):
-            new.append(helper.make_node("Reshape", [t.input[0], flat], [name], name=name))
         scale = float(np.asarray(consts[scale_in[0]]).ravel()[0])
-        new.append(
-            helper.make_node(
-                "MultiHeadAttention",
-                qkv,
-                [f"{p}/out"],
-                domain="com.microsoft",
-                name=p,
-                num_heads=n,
-                scale=scale,
-            )  # fmt: skip
-        )
-        new.append(helper.make_node("Reshape", [f"{p}/out", split], list(back.output), name=split))
-        count += 1
-    if count:
-        kept = [x for x in graph.node if id(x) not in dead]
-        used = {i for x in kept + new for i in x.input} | {o.name for o in graph.output}
-        kept = [x for x in kept if x.op_type != "Constant" or x.output[0] in used]
-        del graph.node[:]
-        graph.node.extend(kept + new)
-        # ONNX wants the nodes in an order where each input is made before it is used
-        _sort(graph)
-    return count
-
-
-def _cast_to(node: Any) -> int:
-    return int(next((a.i for a in node.attribute if a.name == "to"), 0))
-
-
-def _sort(graph: Any) -> None:
-    """Order the nodes so that each is after the nodes whose outputs it takes (depth first)."""
-    made = {o: i for i, node in enumerate(graph.node) for o in node.output}
-    deps = [{made[i] for i in node.input if i in made} for node in graph.node]
-    order: list[int] = []
-    state = [0] * len(deps)  # 0 new, 1 on the stack, 2 placed
-    for start in range(len(deps)):
-        stack = [(start, iter(sorted(deps[start])))]
-        if state[start]:
-            continue
-        state[start] = 1
-        while stack:
-            node, it = stack[-1]
-            nxt = next((d for d in it if state[d] != 2), None)
-            if nxt is None:
-                stack.pop()
-                state[node] = 2
-                order.append(node)
-            elif state[nxt] == 0:
-                state[nxt] = 1
-                stack.append((nxt, iter(sorted(deps[nxt]))))
-    nodes = [graph.node[i] for i in order]
+        at_back[made[back.output[0]]] = [
+            *(helper.make_node("Reshape", [t.input[0], flat], [name], name=name)
+              for t, name in zip((tq, tk, tv), qkv, strict=True)),
+            helper.make_node("MultiHeadAttention", qkv, [f"{p}/out"], domain=MS_DOMAIN, name=p,
+                             num_heads=n, scale=scale),
+            helper.make_node("Reshape", [f"{p}/out", split], list(back.output), name=split),
+        ]  # fmt: skip
+    if not at_back:
+        return 0
+    gone = {name for i in dead for name in every[i].input}
+    nodes: list[Any] = []
+    for i, node in enumerate(every):
+        if i in at_back:
+            nodes += at_back[i]
+        elif i not in dead:
+            nodes.append(node)
+    # the scale constants the removed Muls read, when nothing else reads them
+    read = {name for node in nodes for name in node.input} | {o.name for o in graph.output}
+    read |= set(_read_inside(nodes, AttributeProto))
+    unread = gone - read
+    nodes = [x for x in nodes if not (x.op_type == "Constant" and x.output[0] in unread)]
+    kept = [t for t in graph.initializer if t.name not in unread]
     del graph.node[:]
     graph.node.extend(nodes)
+    del graph.initializer[:]
+    graph.initializer.extend(kept)
+    return len(at_back)

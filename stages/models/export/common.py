@@ -10,6 +10,8 @@ another thread count (docs/models.md).
 
 from __future__ import annotations
 
+import os
+import shutil
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -371,8 +373,9 @@ def export_checked(
     """`module` exported to `path` (its inputs named and ordered as the feeds' keys, its
     `outputs`), then run in onnxruntime against torch on every feed; returns torch's outputs
     per feed and the largest errors over the feeds. `fuse` rewrites the file's attention into
-    onnxruntime's fused op before the check (`attention.py`); the count of layers it rewrote
-    is recorded as `fused_attention`."""
+    onnxruntime's fused op (`attention.py`): the rewritten copy replaces the file when it loads
+    and passes the check, and the count of layers it rewrote is recorded as `fused_attention`
+    (0, with a warning, when the copy was not kept)."""
     import torch
 
     with torch.no_grad():
@@ -380,10 +383,42 @@ def export_checked(
     wants = [[t.numpy() for t in (o if isinstance(o, tuple) else (o,))] for o in outs]
     args = tuple(map(torch.from_numpy, feeds[0].values()))
     onnx_export(module, args, path, (list(feeds[0]), list(outputs)), axes, opset)
-    fused = None if fuse is None else fuse(path)
-    found = [check(path, f, w) for f, w in zip(feeds, wants, strict=True)]
+    n, found = (0, []) if fuse is None else _fused(path, fuse, feeds, wants)
+    if not found:
+        found = [check(path, f, w) for f, w in zip(feeds, wants, strict=True)]
     checks = {k: max(f[k] for f in found) for k in found[0]}
-    return wants, checks if fused is None else {**checks, "fused_attention": fused}
+    return wants, checks if fuse is None else {**checks, "fused_attention": n}
+
+
+def _fused(
+    path: Path,
+    fuse: Callable[[Path], int],
+    feeds: Sequence[dict[str, np.ndarray]],
+    wants: Sequence[Sequence[np.ndarray]],
+) -> tuple[int, list[dict]]:
+    """Fuse a copy of `path` and check it; it replaces `path` when it loads and passes. Returns
+    the layers fused and the copy's checks, or (0, []) when nothing was fused or kept."""
+    trial = path.with_name(f"{path.stem}.fused{path.suffix}")
+    shutil.copyfile(path, trial)
+    try:
+        n = fuse(trial)
+        found = [check(trial, f, w) for f, w in zip(feeds, wants, strict=True)] if n else []
+    except ImportError:
+        trial.unlink()
+        raise GoiError(
+            "goi export-model needs the onnx package, part of the optional extra goi[export]: "
+            "pip install 'goi[export]'"
+        ) from None
+    except Exception as e:  # onnx, onnxruntime and the check raise their own types
+        trial.unlink()
+        why = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
+        warn(f"{path.name}: its attention stays as exported, the fused copy failed ({why})")
+        return 0, []
+    if not n:
+        trial.unlink()
+        return 0, []
+    os.replace(trial, path)
+    return n, found
 
 
 def onnx_export(model: Any, args: tuple, path: Path, names: tuple, axes: dict, opset: int) -> None:
