@@ -93,6 +93,12 @@ def test_owl_image_graph_runs_fused_attention(owl_bundle, res_checkpoints, tmp_p
     assert ops.count("MultiHeadAttention") == layers == 2
     assert m["export_checks"]["owl_image.onnx"]["fused_attention"] == layers
     assert "Softmax" not in ops and "Attention" not in ops
+    # the same checkpoints give the same fused file, byte for byte
+    again = tmp_path / "again"
+    argv = ["export-model", str(res_checkpoints["owlv2"]), str(res_checkpoints["sam"]),
+            "--out", str(again), "--box-threshold", "0.3", "--max-boxes", "3"]  # fmt: skip
+    assert main(argv) == 0
+    assert (again / "owl_image.onnx").read_bytes() == (owl_bundle / "owl_image.onnx").read_bytes()
     # a graph with no self-attention of its pattern is left byte for byte
     text = tmp_path / "owl_text.onnx"
     shutil.copy(owl_bundle / "owl_text.onnx", text)
