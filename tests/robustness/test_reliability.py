@@ -48,6 +48,9 @@ def _interrupt(small, out, sig, rng):
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
+        # a suite started in the background (`cmd &` in a script, as CI may) runs with SIGINT
+        # ignored; the run would inherit that and finish as if it had never been signalled
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     ckpt = out.with_name(out.name + ".ckpt")
     deadline = time.time() + 120
