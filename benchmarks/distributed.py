@@ -108,7 +108,7 @@ def suite_distributed(repeat: int, tmp: Path, size: DistSize | None = None) -> d
     from stages.semantics.codebook import load_codebook
     from stages.semantics.features import feature_grid, feature_views
     from stages.semantics.field import load_field
-    from stages.semantics.field_model import FieldParams
+    from stages.semantics.field_params import FieldParams
     from stages.semantics.memory import working_set
 
     size = size or DistSize.from_env()

@@ -478,8 +478,8 @@ def _paper_route(
     from stages.semantics.decode import SemanticRenderer
     from stages.semantics.extract import ExtractParams, ExtractRun, import_features
     from stages.semantics.field import load_field
-    from stages.semantics.field_model import FieldParams
-    from stages.semantics.fit_field import FieldRun, fit_field
+    from stages.semantics.field_params import FieldParams, FieldRun
+    from stages.semantics.fit_field import fit_field
 
     iterations = int(os.environ.get("GOI_INDEX_FIELD_ITERATIONS", "1500"))
     import numpy as np

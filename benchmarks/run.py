@@ -191,8 +191,8 @@ def _fit_pipeline(
     from stages.scene.scene import load_scene
     from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
     from stages.semantics.extract import ExtractParams, ExtractRun, import_features
-    from stages.semantics.field_model import FieldParams
-    from stages.semantics.fit_field import FieldRun, fit_field
+    from stages.semantics.field_params import FieldParams, FieldRun
+    from stages.semantics.fit_field import fit_field
 
     scene = load_scene(scene_dir)
     times = {}
@@ -289,10 +289,10 @@ def suite_losses(repeat: int, tmp: Path) -> dict[str, float]:
 
     from stages.semantics.field_model import (
         FieldModel,
-        FieldParams,
         field_losses,
         reference_field_losses,
     )
+    from stages.semantics.field_params import FieldParams
 
     torch.manual_seed(0)
     b, n, d = 16384, 300, 384

@@ -162,8 +162,8 @@ def suite_view(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[s
 def _dev_field(room: Path, scene, tmp: Path) -> Path:  # noqa: ANN001
     from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
     from stages.semantics.extract import ExtractParams, ExtractRun, import_features
-    from stages.semantics.field_model import FieldParams
-    from stages.semantics.fit_field import FieldRun, fit_field
+    from stages.semantics.field_params import FieldParams, FieldRun
+    from stages.semantics.fit_field import fit_field
 
     iterations = int(os.environ.get("GOI_VIEW_FIELD_ITERATIONS", "100"))
     _log(f"fitting the dev room's field ({iterations} iterations)")

@@ -35,9 +35,8 @@ from stages.semantics.checkpoint import save_checkpoint as save_ckpt
 from stages.semantics.distributed import Ranks, SumOverRanks, collective, start, stop, torchrun_env
 from stages.semantics.feature_renderer import FeatureRenderer, GradBuffers
 from stages.semantics.field import save_field
-from stages.semantics.field_model import FieldParams
+from stages.semantics.field_params import FieldParams, FieldRun
 from stages.semantics.fit_field import (
-    FieldRun,
     Training,
     check_renders,
     deterministic,

@@ -32,8 +32,8 @@ from stages.semantics.codebook import load_codebook
 from stages.semantics.feature_renderer import FeatureRenderer, GradBuffers
 from stages.semantics.features import feature_grid, feature_views, load_features
 from stages.semantics.field import save_field
-from stages.semantics.field_model import FieldModel, FieldParams, field_losses
-from stages.semantics.field_params import FieldRun
+from stages.semantics.field_model import FieldModel, field_losses
+from stages.semantics.field_params import FieldParams, FieldRun
 from stages.semantics.memory import cache_floor, memory_budget, working_set
 
 

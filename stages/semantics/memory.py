@@ -13,7 +13,7 @@ from stages.core.errors import GoiError
 from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 from stages.semantics.feature_renderer import T_BLOCKS
-from stages.semantics.field_model import FieldParams
+from stages.semantics.field_params import FieldParams
 
 GIB = 2**30
 

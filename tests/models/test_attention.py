@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.core.errors import GoiWarning
+from stages.core.errors import GoiError, GoiWarning
 from stages.models.export.attention import _bsnd_to_mha, fuse_hiera_attention
 from stages.models.export.common import export_checked
 from stages.models.onnx_io import session
@@ -102,3 +102,15 @@ def test_a_fused_copy_that_fails_leaves_the_export_as_it_was(tmp_path):
         module(torch.ones(1, 4)).detach().numpy(),
         rtol=1e-5,
     )
+
+
+def test_without_the_onnx_package_the_export_says_what_to_install(tmp_path):
+    module = torch.nn.Linear(4, 3).eval()
+    feeds = [{"x": np.ones((1, 4), np.float32)}]
+
+    def no_onnx(path):
+        raise ModuleNotFoundError("No module named 'onnx'", name="onnx")
+
+    with pytest.raises(GoiError, match=r"pip install 'goi\[export\]'"):
+        export_checked(module, feeds, tmp_path / "m.onnx", ["y"], {}, 17, fuse=no_onnx)
+    assert not (tmp_path / "m.fused.onnx").exists()

@@ -63,8 +63,8 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_result(
     from stages.scene.scene import load_scene
     from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
     from stages.semantics.extract import ExtractParams, ExtractRun, import_features
-    from stages.semantics.field_model import FieldParams
-    from stages.semantics.fit_field import FieldRun, fit_field
+    from stages.semantics.field_params import FieldParams, FieldRun
+    from stages.semantics.fit_field import fit_field
 
     s = semantic_scene(tmp_path, n=3000, n_views=6, size=(48, 36))
     scene = load_scene(s["scene"])

@@ -7,10 +7,10 @@ import torch.nn.functional as F
 
 from stages.semantics.field_model import (
     FieldModel,
-    FieldParams,
     field_losses,
     reference_field_losses,
 )
+from stages.semantics.field_params import FieldParams
 
 
 def _model_and_batch(seed: int, b: int = 257, n: int = 23, d: int = 16, s: int = 5):

@@ -77,8 +77,8 @@ def fitted(tmp_path_factory):
     from stages.scene.scene import load_scene
     from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
     from stages.semantics.extract import ExtractParams, ExtractRun, import_features
-    from stages.semantics.field_model import FieldParams
-    from stages.semantics.fit_field import FieldRun, fit_field
+    from stages.semantics.field_params import FieldParams, FieldRun
+    from stages.semantics.fit_field import fit_field
 
     root = tmp_path_factory.mktemp("dist")
     s = semantic_scene(root, n=3000, n_views=6, size=(48, 36))
@@ -201,7 +201,7 @@ def test_a_world_size_other_than_the_shards_is_refused(tmp_path):
     from stages.scene.scene import load_scene
     from stages.semantics.cache_shards import plan_shard, shard_path
     from stages.semantics.distributed import Ranks
-    from stages.semantics.field_model import FieldParams
+    from stages.semantics.field_params import FieldParams
     from tests.helpers import front_camera, random_vertex, write_ply
 
     write_ply(tmp_path / "point_cloud.ply", random_vertex(60))

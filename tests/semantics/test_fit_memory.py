@@ -13,8 +13,8 @@ from stages.semantics.codebook import CodebookParams, CodebookRun, init_codebook
 from stages.semantics.extract import ExtractParams, ExtractRun, import_features
 from stages.semantics.features import feature_grid, feature_views
 from stages.semantics.field import load_field
-from stages.semantics.field_model import FieldParams
-from stages.semantics.fit_field import FieldRun, fit_field
+from stages.semantics.field_params import FieldParams, FieldRun
+from stages.semantics.fit_field import fit_field
 from stages.semantics.memory import GIB, working_set
 from tests.helpers import semantic_scene
 

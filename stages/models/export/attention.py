@@ -153,16 +153,23 @@ def _perm(node: Any) -> list[int] | None:
     return given if given is not None else [3, 2, 1, 0]
 
 
-def _read_inside(nodes: list[Any], attribute_proto: Any) -> list[str]:
-    """Every name the subgraphs of `nodes` read, at any depth (they may read the outer graph's
-    tensors by name)."""
+def _read_inside(nodes: list[Any]) -> list[str]:
+    """Every name the subgraphs of `nodes` (If, Loop) read, at any depth: they may read the
+    outer graph's tensors by name."""
+    from onnx import AttributeProto
+
     names: list[str] = []
     for node in nodes:
         for a in node.attribute:
-            graphs = [a.g] if a.type == attribute_proto.GRAPH else list(a.graphs)
-            for g in graphs if a.type in (attribute_proto.GRAPH, attribute_proto.GRAPHS) else []:
+            if a.type == AttributeProto.GRAPH:
+                graphs = [a.g]
+            elif a.type == AttributeProto.GRAPHS:
+                graphs = list(a.graphs)
+            else:
+                continue
+            for g in graphs:
                 names += [i for n in g.node for i in n.input if i]
-                names += _read_inside(list(g.node), attribute_proto)
+                names += _read_inside(list(g.node))
     return names
 
 
@@ -177,7 +184,7 @@ def _bsnd_to_mha(model: Any) -> int:
     Reshape to [B, S, N d], MultiHeadAttention and Reshape back, where the last transpose
     was (every input the new nodes take is made before it). Every tensor inside the match must
     have no other reader, a graph output or a subgraph's read included."""
-    from onnx import AttributeProto, TensorProto, helper, numpy_helper
+    from onnx import TensorProto, helper, numpy_helper
 
     graph = model.graph
     # one list of the nodes: protobuf may hand out a new wrapper at each graph.node[i], and
@@ -190,7 +197,7 @@ def _bsnd_to_mha(model: Any) -> int:
             if name:
                 readers.setdefault(name, []).append(i)
     # what the graph's outputs and its subgraphs (If, Loop) read counts as read elsewhere
-    for name in [o.name for o in graph.output] + _read_inside(every, AttributeProto):
+    for name in [o.name for o in graph.output] + _read_inside(every):
         readers.setdefault(name, []).append(-1)
     consts = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
     for node in every:
@@ -285,7 +292,7 @@ def _bsnd_to_mha(model: Any) -> int:
             nodes.append(node)
     # the scale constants the removed Muls read, when nothing else reads them
     read = {name for node in nodes for name in node.input} | {o.name for o in graph.output}
-    read |= set(_read_inside(nodes, AttributeProto))
+    read |= set(_read_inside(nodes))
     unread = gone - read
     nodes = [x for x in nodes if not (x.op_type == "Constant" and x.output[0] in unread)]
     kept = [t for t in graph.initializer if t.name not in unread]

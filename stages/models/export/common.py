@@ -403,14 +403,13 @@ def _fused(
     try:
         n = fuse(trial)
         found = [check(trial, f, w) for f, w in zip(feeds, wants, strict=True)] if n else []
-    except ImportError:
-        trial.unlink()
-        raise GoiError(
-            "goi export-model needs the onnx package, part of the optional extra goi[export]: "
-            "pip install 'goi[export]'"
-        ) from None
     except Exception as e:  # onnx, onnxruntime and the check raise their own types
         trial.unlink()
+        if isinstance(e, ModuleNotFoundError) and e.name == "onnx":
+            raise GoiError(
+                "goi export-model needs the onnx package, part of the optional extra "
+                "goi[export]: pip install 'goi[export]'"
+            ) from None
         why = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
         warn(f"{path.name}: its attention stays as exported, the fused copy failed ({why})")
         return 0, []
