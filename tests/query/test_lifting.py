@@ -355,6 +355,44 @@ def test_relative_confidence_still_silences_a_confuser():
     assert _iou(out.selected, target) == 1.0
 
 
+def _big_object_evidence():
+    """A big object whose middle (Gaussians 0-99) every view claims and whose arms (100-199)
+    only the 3 views with a whole mask do; 2 tight views see the arms and put them out. Every
+    view sees a wall (200-299) and leaves it out. 5 pixels' worth per Gaussian per view."""
+    ids = np.arange(300)
+    whole, tight = np.r_[np.full(200, 5.0), np.zeros(100)], np.r_[np.full(100, 5.0), np.zeros(200)]
+    ev = [ViewEvidence(f"w{k}", ids, whole.copy(), 5.0 - whole, False) for k in range(3)]
+    ev += [ViewEvidence(f"t{k}", ids, tight.copy(), 5.0 - tight, False) for k in range(2)]
+    return ev
+
+
+def test_claims_the_field_puts_with_the_core_do_not_count_against_a_view():
+    """#38: SAM's tight boxes around a big object agree on its middle, which becomes the core;
+    the whole views' claims on the arms must not sink them when the field decodes the arms to
+    entries the core holds too. The same claims on a support (entries of its own) still do."""
+    ev = _big_object_evidence()
+    seen, plane = np.ones(300, bool), np.zeros(4, bool)
+    arms = (np.arange(300) >= 100) & (np.arange(300) < 200)
+    # the arms' entry (2) also holds 20 Gaussians of the middle: the field's "same thing"
+    entry = np.r_[np.full(20, 2), np.ones(80, int), np.full(100, 2), np.zeros(100, int)]
+    out = fuse(ev, entry, seen, plane, LiftParams())
+    assert out.info["core_kin_gaussians"] == 100
+    assert min(out.confidence.values()) == 1.0
+    assert out.selected[arms].all() and out.selected[:100].all() and not out.selected[200:].any()
+    # the same masks where the claimed part decodes to its own entry (3): a support
+    entry[100:200] = 3
+    support = fuse(ev, entry, seen, plane, LiftParams())
+    assert support.info["core_kin_gaussians"] == 0
+    assert max(support.confidence[f"w{k}"] for k in range(3)) < 0.6
+    assert not support.selected[arms].any() and support.selected[:100].all()
+    # by hand: a whole view's union leaves its kin claims out
+    kin = np.zeros(300, bool)
+    kin[100:200] = True
+    core = np.arange(300) < 100
+    assert view_confidence(ev[0], core, kin) == 1.0
+    assert view_confidence(ev[0], core) == pytest.approx(510 / 1010)
+
+
 def _one_view(S1, S0):
     """Aggregated evidence as one view's (confidence 1): the typical view is the pooled one."""
     ids = np.arange(S1.size)
