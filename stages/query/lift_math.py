@@ -20,8 +20,8 @@ s0 (nothing of the prompt there). The decision, per prompt:
                are correlated and a plain majority can lose. After a vote, the core
                C = {E >= tau, S1 >= q E} (q = `core_share`) is what the views agree on
                confidently; each view is scored by the weighted IoU of its lifted mask with
-               the core,
-                   c_v = (sum_C s1_v + k) / (sum_C (s1_v + s0_v) + sum_notC s1_v + k),
+               the core (K: the core's kin, below),
+                   c_v = (sum_C s1_v + k) / (sum_C (s1_v + s0_v) + sum_notCnotK s1_v + k),
                (k = CONFIDENCE_PRIOR pixels' worth, so a view that neither sees the core nor
                claims anything keeps 1, and an empty mask on a view that shows a sliver of the
                core is not silenced by it; an empty mask on a view that shows much of the core
@@ -35,8 +35,9 @@ s0 (nothing of the prompt there). The decision, per prompt:
                core is empty, every view scored 0.007-0.33 and the re-vote silenced all the
                evidence at once (#26). The rounds stop when the confidences stop moving.
                A claim outside the core does not count against a view where the field says
-               it is the same thing as the core (`core_kin`: its codebook entry lies partly in
-               the core): SAM's tight boxes around a big object, repeated on half the views,
+               it is the same thing as the core (`core_kin`: an evident, field-seen Gaussian
+               whose codebook entry holds at least KIN_SHARE of its evident weight in the
+               core): SAM's tight boxes around a big object, repeated on half the views,
                agree on its middle, which becomes the core, and the views that take it whole
                (arms, frame) sank to 0.27-0.49 while the tight ones kept 0.58-1 (#38). A
                support a box detector takes in, or a neighbour, decodes to other entries and
@@ -114,9 +115,10 @@ TYPICAL_PARTLY_IN = 0.1
 #: least this share of its evident weight (E) in the core. Of the sofa's 4,344 Gaussians that
 #: SAM's tight boxes leave out on half the views (in the vote, not in the core), 2,486-3,086
 #: decode to entries with 10 % or more of their weight in the core; of the 1,196 of the side
-#: table under "the plant on the side table", 31-67. On the dev room's stress runs of #38
-#: (docs/studies/correlated-errors.md) 0.1 brought the sofa from 0.761 to 0.777 only, 0.05
-#: to 0.794; 0.03 began to forgive the television's cabinet (0.882 -> 0.857).
+#: table under "the plant on the side table", 31-67 (fields 0-2). Replayed on the dev room's
+#: runs of #38 (docs/studies/correlated-errors.md), 0.1 brought the sofa (field 2) from 0.761
+#: to 0.777 only, 0.05 to 0.794; 0.03 began to forgive the television's cabinet
+#: (`res-correlated/`, 0.882 -> 0.857).
 KIN_SHARE = 0.05
 #: The rounds stop once no view's relative confidence moves by more than this.
 CONFIDENCE_TOL = 1e-3
@@ -332,7 +334,7 @@ def fuse(
     n = entry.shape[0]
     conf = np.ones(len(evidence))
     S1, S0 = accumulate(evidence, conf, n)
-    rounds, kin_count = 0, 0
+    rounds, kin_count = 0, None  # kin of the last round's core (None: no round ran)
     for _ in range(p.confidence_rounds):
         core = agreed_core(S1, S0, p)
         kin = core_kin(S1, S0, core, entry, seen, p)

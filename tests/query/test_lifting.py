@@ -9,6 +9,8 @@ from stages.query.lift_math import (
     Lifted,
     LiftParams,
     ViewEvidence,
+    accumulate,
+    core_kin,
     fuse,
     view_confidence,
     vote_share,
@@ -373,8 +375,10 @@ def test_claims_the_field_puts_with_the_core_do_not_count_against_a_view():
     ev = _big_object_evidence()
     seen, plane = np.ones(300, bool), np.zeros(4, bool)
     arms = (np.arange(300) >= 100) & (np.arange(300) < 200)
-    # the arms' entry (2) also holds 20 Gaussians of the middle: the field's "same thing"
-    entry = np.r_[np.full(20, 2), np.ones(80, int), np.full(100, 2), np.zeros(100, int)]
+    # the arms' entry (2) also holds 10 Gaussians of the middle (10 / 110 of its weight in the
+    # core): the field's "same thing". Without the rule the whole views sink to 0.5 and the
+    # arms' entry is put 0.48 in, under the thin-parts rule's 0.5: the arms would be out
+    entry = np.r_[np.full(10, 2), np.ones(90, int), np.full(100, 2), np.zeros(100, int)]
     out = fuse(ev, entry, seen, plane, LiftParams())
     assert out.info["core_kin_gaussians"] == 100
     assert min(out.confidence.values()) == 1.0
@@ -391,6 +395,12 @@ def test_claims_the_field_puts_with_the_core_do_not_count_against_a_view():
     core = np.arange(300) < 100
     assert view_confidence(ev[0], core, kin) == 1.0
     assert view_confidence(ev[0], core) == pytest.approx(510 / 1010)
+    # kin is the field's word: Gaussians the field never saw are never kin
+    S1, S0 = accumulate(ev, np.ones(len(ev)), 300)
+    entry[100:200] = 2
+    assert core_kin(S1, S0, core, entry, seen, LiftParams()).sum() == 100
+    seen[100:200] = False
+    assert not core_kin(S1, S0, core, entry, seen, LiftParams()).any()
 
 
 def _one_view(S1, S0):
