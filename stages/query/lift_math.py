@@ -30,10 +30,13 @@ s0 (nothing of the prompt there). The decision, per prompt:
                down-weighted as a whole instead of winning Gaussian by Gaussian.
                The core is relative (`agreed_core`: a share S1 / E of at least q times the
                largest share any Gaussian has), so it is empty only when no mask claims
-               anything, and so are the confidences (`relative`: c_v over the largest c_v,
-               floored at CONFIDENCE_FLOOR): on a thin target under eroded masks an absolute
-               core is empty, every view scored 0.007-0.33 and the re-vote silenced all the
-               evidence at once (#26). The rounds stop when the confidences stop moving.
+               anything, and so are the confidences (`relative`: c_v over the largest c_v of
+               a view that answers, floored at CONFIDENCE_FLOOR and capped at 1): on a thin
+               target under eroded masks an absolute core is empty, every view scored
+               0.007-0.33 and the re-vote silenced all the evidence at once (#26). An empty
+               mask has no claim to score, so it never sets that scale (#38: a small cup's
+               empty masks kept 1 on the prior alone and the views outlining it 0.17-0.35).
+               The rounds stop when the confidences stop moving.
                A claim outside the core does not count against a view where the field says
                it is the same thing as the core (`core_kin`: an evident, field-seen Gaussian
                whose codebook entry holds at least KIN_SHARE of its evident weight in the
@@ -269,16 +272,22 @@ def agreed_core(S1: np.ndarray, S0: np.ndarray, p: LiftParams) -> np.ndarray:
     return evident & (share >= p.core_share * top)
 
 
-def relative(raw: np.ndarray) -> np.ndarray:
-    """[V] confidences relative to the most trusted view's, floored at CONFIDENCE_FLOOR. The
+def relative(raw: np.ndarray, answering: np.ndarray | None = None) -> np.ndarray:
+    """[V] confidences relative to the most trusted answering view's (`answering` [V] bool: the
+    views whose mask is not empty; None: all), floored at CONFIDENCE_FLOOR and capped at 1. The
     weighted IoU with the core falls for every view together when the core is small against
     what the views claim (a thin target, eroded masks): absolute confidences of 0.007-0.33
     shrink every Gaussian's evidence below `min_evidence` and hand the prompt to the field.
-    Relative ones keep the best view's evidence at full weight and rank the others."""
-    top = float(raw.max(initial=0.0))
+    Relative ones keep the best view's evidence at full weight and rank the others.
+    An empty mask has nothing to agree with: its raw confidence is the prior's alone, 1 when
+    it shows none of the core, so it must not set the scale. Under a small target's correlated
+    masks (the coffee cup: 33 empty masks, 5 right ones) it did, and the views that outline
+    the cup kept 0.17-0.35 while the empty ones kept 0.9-1."""
+    answers = raw if answering is None or not answering.any() else raw[answering]
+    top = float(answers.max(initial=0.0))
     if top <= 0.0:
         return np.ones_like(raw)
-    return np.maximum(raw / top, CONFIDENCE_FLOOR)
+    return np.clip(raw / top, CONFIDENCE_FLOOR, 1.0)
 
 
 def entry_counts(
@@ -333,13 +342,14 @@ def fuse(
     all every Gaussian takes the semantic decision (the OSH)."""
     n = entry.shape[0]
     conf = np.ones(len(evidence))
+    answering = np.array([not e.empty for e in evidence], bool)  # [V]
     S1, S0 = accumulate(evidence, conf, n)
     rounds, kin_count = 0, None  # kin of the last round's core (None: no round ran)
     for _ in range(p.confidence_rounds):
         core = agreed_core(S1, S0, p)
         kin = core_kin(S1, S0, core, entry, seen, p)
         kin_count = int(kin.sum())
-        new = relative(np.array([view_confidence(e, core, kin) for e in evidence]))
+        new = relative(np.array([view_confidence(e, core, kin) for e in evidence]), answering)
         if np.abs(new - conf).max(initial=0.0) <= CONFIDENCE_TOL:
             break  # the vote would not change: more rounds only cost time
         conf = new

@@ -12,6 +12,7 @@ from stages.query.lift_math import (
     accumulate,
     core_kin,
     fuse,
+    relative,
     view_confidence,
     vote_share,
 )
@@ -355,6 +356,36 @@ def test_relative_confidence_still_silences_a_confuser():
     assert out.confidence["v0"] < 0.2 and out.confidence["v1"] < 0.2
     assert min(out.confidence[f"v{v}"] for v in range(2, 12)) == 1.0
     assert _iou(out.selected, target) == 1.0
+
+
+def test_empty_masks_do_not_set_the_scale_of_the_views_that_answer():
+    """#38: a small target that many views show at a few pixels, where the RES answers empty
+    (the coffee cup under correlated masks). Its side that only the answering views see (A,
+    Gaussians 0-19) becomes the core; the empty masks see none of it and keep the prior's 1,
+    and the views that outline the whole cup claim B (20-99) outside the core. Relative to an
+    empty mask they sank to 0.22 and the re-vote dropped B; relative to the best view that
+    answers they keep 1. A wall (100-199) every view leaves out stays out."""
+    ids = np.arange(200)
+    whole = np.r_[np.full(100, 5.0), np.zeros(100)]
+    ev = [ViewEvidence(f"a{k}", ids, whole.copy(), 10.0 - 2 * whole, False) for k in range(3)]
+    sliver = np.r_[np.zeros(20), np.ones(80), np.full(100, 10.0)]  # B at 1 px, the wall
+    ev += [ViewEvidence(f"e{k}", ids, np.zeros(200), sliver.copy(), True) for k in range(12)]
+    unseen = np.zeros(200, bool)
+    out = fuse(ev, np.zeros(200, int), unseen, np.zeros(1, bool), LiftParams())
+    assert [out.confidence[f"a{k}"] for k in range(3)] == [1.0, 1.0, 1.0]
+    assert out.selected[:100].all() and not out.selected[100:].any()
+    # the raw scores, by hand: an empty mask that shows none of the core is the prior's 1; a
+    # view claiming A and B has IoU (100 + 10) / (500 + 10) with the core A
+    core = ids < 20
+    assert view_confidence(ev[3], core) == 1.0
+    assert view_confidence(ev[0], core) == pytest.approx(110 / 510)
+    raw = np.array([110 / 510] * 3 + [1.0] * 12)
+    answering = np.array([True] * 3 + [False] * 12)
+    assert relative(raw, answering) == pytest.approx(np.ones(15))
+    assert relative(raw)[:3] == pytest.approx(np.full(3, 110 / 510))  # every view sets it
+    # a view that answers worse than the best is still ranked under it
+    raw[0] = 0.1
+    assert relative(raw, answering)[0] == pytest.approx(0.1 / (110 / 510))
 
 
 def _big_object_evidence():
