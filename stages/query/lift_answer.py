@@ -167,10 +167,12 @@ def fit_lifted_plane(
     text: np.ndarray,
     hp: HyperplaneParams,
 ) -> Hyperplane:
-    """The OSH fitted on the Gaussians' lifted evidence (per entry: S1 and S0 of its Gaussians);
-    the fixed-threshold plane when the masks claim nothing."""
+    """The OSH fitted on the Gaussians' lifted evidence (per entry: S1 and S0 of its Gaussians,
+    S0 of the views whose mask answers); the fixed-threshold plane when the masks claim
+    nothing."""
     unit = field.unit_codebook().astype(np.float64)
-    counts = entry_counts(lifted.S1, lifted.S0, entry, field.seen, unit.shape[0])
+    S0 = lifted.S0 if lifted.S0_answering is None else lifted.S0_answering
+    counts = entry_counts(lifted.S1, S0, entry, field.seen, unit.shape[0])
     if counts.pos.sum() <= 0:
         return threshold_plane(prompt, text, unit, hp.threshold)
     W, b, rec = fit_osh(counts, unit, text, hp)

@@ -63,7 +63,14 @@ s0 (nothing of the prompt there). The decision, per prompt:
 
 The OSH itself is fitted on the lifted evidence (`entry_counts`): entry k's positive and
 negative weights are the S1 and S0 of its Gaussians, the same loss as the paper's per-pixel
-counts but over the Gaussians all the views see.
+counts but over the Gaussians all the views see, S0 taken over the views that answer (a mask
+that is not empty). The paper fits on one RES mask, which always answers; an empty mask says
+"nothing of the prompt here" of the target and everything else alike, so it cannot tell the
+plane which is which, and on a small target whose masks are mostly empty (the cup under
+correlated masks: 33 empty, 5 right) its negatives taught the plane to leave out the cup's
+second codebook entry (one entry kept instead of three; lifted test IoU 0.51 -> 0.81 without
+them, no other prompt of the dev runs moved). The vote itself still counts empty masks: they
+are what keeps a confuser out where the target is absent.
 """
 
 from __future__ import annotations
@@ -217,6 +224,9 @@ class Lifted:
     S0: np.ndarray  # [G] float64
     confidence: dict[str, float]  # view -> c_v of the final vote
     info: dict = field(default_factory=dict)
+    #: [G] float64: S0 over the views that answer (not empty), what the OSH is fitted on (the
+    #: module doc); None: S0 (no view is empty)
+    S0_answering: np.ndarray | None = None
 
 
 def accumulate(
@@ -294,7 +304,7 @@ def entry_counts(
     S1: np.ndarray, S0: np.ndarray, entry: np.ndarray, seen: np.ndarray, n_entries: int
 ) -> Counts:
     """The OSH's training counts from lifted evidence: per codebook entry, the S1 and S0 of the
-    (field-seen) Gaussians decoding to it."""
+    (field-seen) Gaussians decoding to it (S0 of the views that answer: `Lifted.S0_answering`)."""
     return Counts(
         np.bincount(entry[seen], weights=S1[seen], minlength=n_entries),
         np.bincount(entry[seen], weights=S0[seen], minlength=n_entries),
@@ -357,6 +367,11 @@ def fuse(
         rounds += 1
     sel, evident = decide(S1, S0, entry, seen, plane_positive, p)
     sel, weighed = guard(sel, seen & plane_positive[entry], S1, S0, p, evidence, conf)
+    S0_answering = None
+    if not answering.all():
+        _, S0_answering = accumulate(
+            [e for e, a in zip(evidence, answering, strict=True) if a], conf[answering], n
+        )
     confidence = {e.view: round(float(c), 4) for e, c in zip(evidence, conf, strict=True)}
     info = {
         "confidence_rounds_run": rounds,
@@ -364,7 +379,7 @@ def fuse(
         "collapsed_vote_fused_with_field": bool(weighed and weighed["fused"]),
         "guard": weighed,
     }
-    return Lifted(sel, evident, S1, S0, confidence, info)
+    return Lifted(sel, evident, S1, S0, confidence, info, S0_answering)
 
 
 def vote_share(lifted: Lifted, p: LiftParams, fallback: np.ndarray | None) -> np.ndarray:

@@ -1,10 +1,18 @@
 """The lifted mode on a synthetic room: exact masks, a distractor, empty masks, view choice."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from stages.core.errors import GoiError, GoiWarning
-from stages.query.lift_answer import lift_prompt, lifted_masks, view_evidence, view_visibility
+from stages.query.lift_answer import (
+    fit_lifted_plane,
+    lift_prompt,
+    lifted_masks,
+    view_evidence,
+    view_visibility,
+)
 from stages.query.lift_math import (
     Lifted,
     LiftParams,
@@ -386,6 +394,41 @@ def test_empty_masks_do_not_set_the_scale_of_the_views_that_answer():
     # a view that answers worse than the best is still ranked under it
     raw[0] = 0.1
     assert relative(raw, answering)[0] == pytest.approx(0.1 / (110 / 510))
+
+
+def test_the_osh_is_fitted_on_the_views_that_answer():
+    """#38: a small object whose masks are mostly empty (the cup under correlated masks). Its
+    first codebook entry (A, Gaussians 0-49) only the answering views see; its second (B,
+    50-99) the 12 empty masks show too, and their "nothing here" outweighs the 3 answering
+    views' claim in the vote. Fitted on every view's S0, the OSH learns to leave B out and the
+    guard has nothing to bring back; fitted on the answering views' S0, as the paper fits on
+    one RES mask (which always answers), it keeps B, and the guard fuses it with the vote."""
+    ids = np.arange(150)
+    entry = np.r_[np.zeros(50, int), np.ones(50, int), np.full(50, 2)]  # A, B, a wall
+    claim = np.r_[np.full(100, 5.0), np.zeros(50)]
+    ev = [ViewEvidence(f"a{k}", ids, claim.copy(), 5.0 - claim, False) for k in range(3)]
+    shows_b = np.r_[np.zeros(50), np.full(100, 5.0)]
+    ev += [ViewEvidence(f"e{k}", ids, np.zeros(150), shows_b.copy(), True) for k in range(12)]
+    # A and B 70 degrees apart, the prompt on A: B starts on the far side of the 0.5 threshold
+    codebook = np.array([[1.0, 0, 0], [np.cos(1.22), np.sin(1.22), 0], [0, 0, 1.0]], np.float32)
+    eye = np.eye(3, dtype=np.float32)
+    field = Field(eye[entry], eye, np.zeros(3, np.float32), codebook)
+    hp, lp = HyperplaneParams(), LiftParams()
+    text = codebook[0]
+    start = field.unit_codebook() @ text - hp.threshold > 0
+    first = fuse(ev, entry, field.seen, start, lp)
+    assert not first.selected[50:].any()  # the vote: A only
+    _, S0_answering = accumulate(ev[:3], np.ones(3), 150)
+    assert first.S0_answering == pytest.approx(S0_answering)
+    plane = fit_lifted_plane(first, field, entry, "cup", text, hp)
+    assert plane.positive.tolist() == [True, True, False]
+    out = fuse(ev, entry, field.seen, plane.positive, lp)
+    assert out.info["guard"]["fused"] and out.selected[:100].all() and not out.selected[100:].any()
+    # every view's S0, empty masks' too, would have taught the plane to leave B out
+    every = fit_lifted_plane(replace(first, S0_answering=None), field, entry, "cup", text, hp)
+    assert every.positive.tolist() == [True, False, False]
+    # with no empty mask there is nothing to leave out
+    assert fuse(ev[:3], entry, field.seen, start, lp).S0_answering is None
 
 
 def _big_object_evidence():
