@@ -220,7 +220,8 @@ def fit_hyperplane_cmd(field: Path, prompt: str, **kw) -> None:
     is added to the hyperplanes artifact; the same prompt, field and masks are never refitted.
     When the bundle's RES model makes the masks, the ones used are written beside the artifact
     (<out's directory>/<prompt>/res/<view>.png). With --lift the plane is fitted on the RES
-    masks of many views lifted onto the Gaussians.
+    masks of many views lifted onto the Gaussians; an empty mask ("nothing of the prompt here")
+    is not one of its negatives, as the paper's one mask always answers.
     """
     from stages.core.files import refuse_inputs
     from stages.query.hyperplanes import add_plane, fit_hyperplane, res_masks_dir, wrote_res_masks
