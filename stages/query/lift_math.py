@@ -68,9 +68,9 @@ that is not empty). The paper fits on one RES mask, which always answers; an emp
 "nothing of the prompt here" of the target and everything else alike, so it cannot tell the
 plane which is which, and on a small target whose masks are mostly empty (the cup under
 correlated masks: 33 empty, 5 right) its negatives taught the plane to leave out the cup's
-second codebook entry (one entry kept instead of three; lifted test IoU 0.51 -> 0.81 without
-them, no other prompt of the dev runs moved). The vote itself still counts empty masks: they
-are what keeps a confuser out where the target is absent.
+second codebook entry (it kept one of the two, 214 Gaussians; without them both, 577; lifted
+test IoU 0.51 -> 0.81, no other prompt of the dev runs moved). The vote itself still counts
+empty masks: they are what keeps a confuser out where the target is absent.
 """
 
 from __future__ import annotations
@@ -282,18 +282,18 @@ def agreed_core(S1: np.ndarray, S0: np.ndarray, p: LiftParams) -> np.ndarray:
     return evident & (share >= p.core_share * top)
 
 
-def relative(raw: np.ndarray, answering: np.ndarray | None = None) -> np.ndarray:
+def relative(raw: np.ndarray, answering: np.ndarray) -> np.ndarray:
     """[V] confidences relative to the most trusted answering view's (`answering` [V] bool: the
-    views whose mask is not empty; None: all), floored at CONFIDENCE_FLOOR and capped at 1. The
-    weighted IoU with the core falls for every view together when the core is small against
-    what the views claim (a thin target, eroded masks): absolute confidences of 0.007-0.33
+    views whose mask is not empty; when none is, all), floored at CONFIDENCE_FLOOR and capped
+    at 1. The weighted IoU with the core falls for every view together when the core is small
+    against what the views claim (a thin target, eroded masks): absolute confidences of 0.007-0.33
     shrink every Gaussian's evidence below `min_evidence` and hand the prompt to the field.
     Relative ones keep the best view's evidence at full weight and rank the others.
     An empty mask has nothing to agree with: its raw confidence is the prior's alone, 1 when
     it shows none of the core, so it must not set the scale. Under a small target's correlated
     masks (the coffee cup: 33 empty masks, 5 right ones) it did, and the views that outline
     the cup kept 0.17-0.35 while the empty ones kept 0.9-1."""
-    answers = raw if answering is None or not answering.any() else raw[answering]
+    answers = raw[answering] if answering.any() else raw
     top = float(answers.max(initial=0.0))
     if top <= 0.0:
         return np.ones_like(raw)

@@ -390,7 +390,8 @@ def test_empty_masks_do_not_set_the_scale_of_the_views_that_answer():
     raw = np.array([110 / 510] * 3 + [1.0] * 12)
     answering = np.array([True] * 3 + [False] * 12)
     assert relative(raw, answering) == pytest.approx(np.ones(15))
-    assert relative(raw)[:3] == pytest.approx(np.full(3, 110 / 510))  # every view sets it
+    every = np.ones(15, bool)  # every view set the scale before
+    assert relative(raw, every)[:3] == pytest.approx(np.full(3, 110 / 510))
     # a view that answers worse than the best is still ranked under it
     raw[0] = 0.1
     assert relative(raw, answering)[0] == pytest.approx(0.1 / (110 / 510))
