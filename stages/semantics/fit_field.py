@@ -23,6 +23,7 @@ from stages.core.errors import GoiError
 from stages.core.files import check_output_name, output_lock, refuse_if_input, refuse_inputs
 from stages.core.params import check_params
 from stages.core.report import SILENT, Report, size_text
+from stages.core.torch_numerics import settle_vml
 from stages.render.constants import ALPHA_MIN
 from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
@@ -49,10 +50,13 @@ def field_inputs(scene: Scene, features_path: Path, codebook_path: Path) -> dict
 def deterministic(fn: Callable[..., Path]) -> Callable[..., Path]:
     """Run with torch's deterministic kernels. The codebook's gradient through T[argmax e] is an
     indexed accumulation, which torch otherwise runs with unordered parallel adds on the CPU, so
-    two runs with the same seed would differ in the last bits."""
+    two runs with the same seed would differ in the last bits. MKL's choice of exp kernel is
+    settled first (`settle_vml`): the first step's softmax was otherwise wrong in one thread's
+    half, now and then."""
 
     @functools.wraps(fn)
     def run(*args: Any, **kwargs: Any) -> Path:
+        settle_vml()
         before = torch.are_deterministic_algorithms_enabled()
         torch.use_deterministic_algorithms(True)
         try:

@@ -13,6 +13,7 @@ import numpy as np
 
 from stages.core.errors import GoiError
 from stages.core.report import SILENT, Report
+from stages.core.torch_numerics import settle_vml
 from stages.semantics.features import FeatureMaps
 
 if TYPE_CHECKING:  # torch is imported where k-means runs: every goi command imports this module
@@ -44,6 +45,7 @@ def spherical_kmeans(
     """Cluster unit rows x [M, D] into k unit centres [k, D]; returns centres and counts [k]."""
     import torch
 
+    settle_vml()
     if x.shape[0] < k:
         raise GoiError(
             f"--entries: only {x.shape[0]} feature samples for {k} codebook entries: lower "

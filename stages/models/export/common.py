@@ -21,6 +21,7 @@ import numpy as np
 
 from stages.core.errors import GoiError, warn
 from stages.core.files import read_json, regular_file
+from stages.core.torch_numerics import settle_vml
 from stages.models.onnx_io import Tokens
 
 TOLERANCE = 1e-4
@@ -158,6 +159,7 @@ def load_model(cls: Any, src: Path, what: str) -> Any:
     named in a warning."""
     from safetensors import SafetensorError
 
+    settle_vml()  # the check's torch outputs are the reference the ONNX file is held to
     try:
         model, info = cls.from_pretrained(
             str(src), attn_implementation="eager", use_safetensors=True, output_loading_info=True
