@@ -5,10 +5,11 @@ intra-op thread on its chunk. The oneMKL that torch 2.13's CPU wheels carry (202
 VML function's kernel lazily, on its first call, and when that first call comes from several
 threads at once, one thread can run a low-accuracy kernel on its whole chunk of that call
 (relative error up to 1.5e-4 instead of 1e-7; pytorch/pytorch#188792). In `goi fit-field` that
-call was the first step's exp of the softmax: in about one fresh process in four one thread's
-half of the exponentials came out wrong, the first step's gradient with them, and the field
-drifted from there (one demo in eight ended with other one-view answers). One single-threaded
-call of each function, in each precision, before any parallel one settles the choice.
+call was the first step's exp of the softmax: in 4 of 39 fresh processes one thread's half of
+the exponentials came out wrong, the first step's gradient with them, and the field drifted
+from there (2 of 8 demos ended with other one-view answers: the sofa 0.727 and 0.768 against
+0.753). One single-threaded call of each function, in each precision, before any parallel one
+settles the choice.
 """
 
 from __future__ import annotations
