@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from stages.core.torch_numerics import VML_FUNCTIONS, settle_vml
+from stages.semantics.fit_field import deterministic
+from stages.semantics.kmeans import spherical_kmeans
 
 #: A fresh process as goi's fit is one: numba's threads have run (the rasteriser, the blend
 #: cache), then torch's first exp over many elements, on two threads. Without `settle_vml`
@@ -42,6 +45,17 @@ def test_every_vml_function_is_a_torch_function_and_settles():
         x = torch.linspace(0.1, 0.9, 5, dtype=torch.float64)
         got = getattr(torch, name)(x).numpy()
         assert np.isfinite(got).all(), name
+
+
+def test_the_fit_and_the_codebook_settle_the_choice_before_their_first_parallel_call():
+    settle_vml.cache_clear()
+    settled = []
+    deterministic(lambda: settled.append(settle_vml.cache_info().currsize) or Path())()
+    assert settled == [1]
+    settle_vml.cache_clear()
+    x = np.eye(4, dtype=np.float32)
+    spherical_kmeans(x, 2, 1, seed=0)
+    assert settle_vml.cache_info().currsize == 1
 
 
 @pytest.mark.slow

@@ -159,7 +159,6 @@ def load_model(cls: Any, src: Path, what: str) -> Any:
     named in a warning."""
     from safetensors import SafetensorError
 
-    settle_vml()  # the check's torch outputs are the reference the ONNX file is held to
     try:
         model, info = cls.from_pretrained(
             str(src), attn_implementation="eager", use_safetensors=True, output_loading_info=True
@@ -380,6 +379,7 @@ def export_checked(
     (0, with a warning, when the copy was not kept)."""
     import torch
 
+    settle_vml()  # torch's outputs are the reference the ONNX file is held to
     with torch.no_grad():
         outs = [module(*map(torch.from_numpy, f.values())) for f in feeds]
     wants = [[t.numpy() for t in (o if isinstance(o, tuple) else (o,))] for o in outs]
