@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import functools
 
-#: The torch functions ATen hands to MKL's VML (`aten/src/ATen/cpu/vml.h`, over the versions
-#: goi has used): every one is settled, as a function settled elsewhere does not settle another.
+#: The torch functions ATen hands to MKL's VML (`aten/src/ATen/cpu/vml.h`; abs, expm1 and log1p
+#: in earlier torch versions). Each is settled: settling one does not settle another.
 VML_FUNCTIONS = (
     "abs",
     "acos",
@@ -45,7 +45,7 @@ VML_FUNCTIONS = (
 def settle_vml() -> None:
     """Call each VML function once on one element, float and double, in this thread: later
     calls from many threads at once then run the accurate kernel every time. Once a process
-    (the cache); a forked child inherits the settled choice."""
+    (the cache)."""
     import torch
 
     for dtype in (torch.float32, torch.float64):
