@@ -15,6 +15,7 @@ from stages import __version__
 from stages.core.artifacts import set_command
 from stages.core.errors import GoiError, debugging, set_debug
 from stages.core.files import guarded_inputs
+from stages.core.interrupts import stoppable
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -53,7 +54,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     old_show = warnings.showwarning
     warnings.showwarning = _show_warning
     try:
-        with guarded_inputs():  # no output of this command may replace one of its inputs
+        # no output of this command may replace one of its inputs; a Ctrl-C always stops it
+        with guarded_inputs(), stoppable():
             rc = cli.main(args=args, prog_name="goi", standalone_mode=False)
         code = rc if isinstance(rc, int) else 0
     except click.exceptions.Abort:

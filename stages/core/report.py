@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sized
 from contextlib import AbstractContextManager
 from typing import Any, Protocol, TypeVar
+
+from stages.core.interrupts import check
 
 T = TypeVar("T")
 #: What a progress line or bar says of the current item (None: nothing).
@@ -60,7 +62,10 @@ class Lines:
     def progress(
         self, items: Iterable[T], label: str, length: int | None = None, show: Show[T] | None = None
     ) -> Iterator[T]:
-        drawn = self.bar(items, label, length, show) if self.bar is not None else None
+        # the bar's total, where the caller gave none, as the bar would take it from the items
+        total = len(items) if length is None and isinstance(items, Sized) else length
+        items = _stoppable(items)
+        drawn = self.bar(items, label, total, show) if self.bar is not None else None
         if drawn is not None:
             with drawn as bar:
                 yield from bar
@@ -79,6 +84,14 @@ class Lines:
                     f"{label}: {done}/{length} ({100 * done // length}%), {elapsed:.0f} s"
                     + (f", {shown}" if shown else "")
                 )
+
+
+def _stoppable(items: Iterable[T]) -> Iterator[T]:
+    """The items, each after `interrupts.check`: a Ctrl-C swallowed on its way (in a weakref
+    callback) stops the loop at its next item."""
+    for item in items:
+        check()
+        yield item
 
 
 SILENT: Report = Lines()
