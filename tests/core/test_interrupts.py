@@ -13,6 +13,15 @@ from stages.core.interrupts import check, stoppable
 from stages.core.report import SILENT, Lines
 
 
+@pytest.fixture(autouse=True)
+def python_s_handler():
+    """Python's own SIGINT handler, as in a terminal: a suite started in the background (CI's)
+    inherits SIGINT ignored, and goi then leaves it ignored."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
 def _swallowed_ctrl_c() -> None:
     try:
         signal.raise_signal(signal.SIGINT)
