@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable, Iterator, Sized
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractContextManager
 from typing import Any, Protocol, TypeVar
 
@@ -62,14 +62,12 @@ class Lines:
     def progress(
         self, items: Iterable[T], label: str, length: int | None = None, show: Show[T] | None = None
     ) -> Iterator[T]:
-        # the bar's total, where the caller gave none, as the bar would take it from the items
-        total = len(items) if length is None and isinstance(items, Sized) else length
-        items = _stoppable(items)
-        drawn = self.bar(items, label, total, show) if self.bar is not None else None
+        drawn = self.bar(items, label, length, show) if self.bar is not None else None
         if drawn is not None:
             with drawn as bar:
-                yield from bar
+                yield from _stoppable(bar)
             return
+        items = _stoppable(items)
         if self.write is None or not length:
             yield from items
             return

@@ -4,6 +4,7 @@ callback or a __del__) still stops the next loop that reports progress
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
 
@@ -29,7 +30,12 @@ def _swallowed_ctrl_c() -> None:
         pass  # as in a weakref callback: printed, and the run goes on
 
 
-@pytest.mark.parametrize("report", [SILENT, Lines(write=lambda m: None)], ids=["silent", "lines"])
+BAR = Lines(bar=lambda items, label, length, show: contextlib.nullcontext(items))
+
+
+@pytest.mark.parametrize(
+    "report", [SILENT, Lines(write=lambda m: None), BAR], ids=["silent", "lines", "bar"]
+)
 def test_a_swallowed_ctrl_c_stops_the_next_progress_loop(report):
     done = []
     with stoppable():
