@@ -25,7 +25,7 @@ Every other prompt's masks are the base set's, linked. The room is `thin_room`'s
 `thin_room --prompts thin,held-out` made, and the sets join its own:
 
     python -m stages.testing.stress_room ../shared/dev-room OUT \
-        [--res support,support-sam,parts-sam] [--mask-seed S]
+        [--res support,support-sam,parts-sam] [--mask-seed S] [--support-share F]
 """
 
 from __future__ import annotations
@@ -137,9 +137,13 @@ def _link_base(out: Path, base: Path, keep: set[str]) -> None:
             (out / d.name).symlink_to(d.resolve())
 
 
-def support_masks(room: Path, base: Path, out: Path, tool: Path, seed: int) -> dict:
-    """The `support` set of `room` (see the module doc) from the base set and the tool `tool`;
-    returns {prompt id: {"support": id, "views": [...], "with_support": [...]}}."""
+def support_masks(
+    room: Path, base: Path, out: Path, tool: Path, seed: int, share: float = SUPPORT_SHARE
+) -> dict:
+    """The `support` set of `room` (see the module doc) from the base set and the tool `tool`,
+    the support taken in on `share` of the views that show it (the views of a larger share hold
+    those of a smaller one, for the same seed); returns {prompt id: {"support": id, "views":
+    [...], "with_support": [...]}}."""
     spatial = spatial_prompts(room)
     _link_base(out, base, set(spatial))
     prompts = [p for p in json.loads((room / "prompts.json").read_text()) if p["id"] in spatial]
@@ -156,7 +160,7 @@ def support_masks(room: Path, base: Path, out: Path, tool: Path, seed: int) -> d
                 raise RuntimeError(f"{tool.name}: the confuser of {pid} is not its support {sup}")
             logs = meta["masks"].get(pid, {})
             shows = sorted(v for v, log in logs.items() if log.get("confuser") == sup)
-            chosen = _chosen(shows, SUPPORT_SHARE, seed, "support", pid)
+            chosen = _chosen(shows, share, seed, "support", pid)
             present = {f.stem for f in (base / pid).glob("*.png")}
             (out / pid).mkdir()
             for v in sorted(present | set(shows)):
@@ -215,7 +219,14 @@ def parts_masks(room: Path, base: Path, out: Path, tools: Path, seed: int) -> di
     return {pid: {"views": views_of[pid], "tight": sorted(tight[pid])} for pid in big}
 
 
-def add_stress(room: Path, src: Path, name: str, tools: Path, seed: int = 0) -> Path:
+def add_stress(
+    room: Path,
+    src: Path,
+    name: str,
+    tools: Path,
+    seed: int = 0,
+    support_share: float = SUPPORT_SHARE,
+) -> Path:
     """Stress set `name` (STRESS_SETS) of the extended `room`, with its base set made first when
     the room lacks it; what was changed is written to the set's stress.json."""
     base_name, tool = STRESS_SETS[name]
@@ -228,8 +239,8 @@ def add_stress(room: Path, src: Path, name: str, tools: Path, seed: int = 0) -> 
         made = parts_masks(room, base, out, tools, seed)
         opts = {"parts_share": PARTS_SHARE, "tight": TIGHT, "big_frac": BIG_FRAC}
     else:
-        made = support_masks(room, base, out, Path(tools) / tool, seed)
-        opts = {"support_share": SUPPORT_SHARE}
+        made = support_masks(room, base, out, Path(tools) / tool, seed, support_share)
+        opts = {"support_share": support_share}
     doc = {"set": name, "base": base_name, "seed": seed, **opts, "prompts": made}
     tmp = out / "stress.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1))
@@ -252,8 +263,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--mask-seed", type=int, default=0, help="seed of the RES masks (default 0, the room's)"
     )
+    ap.add_argument(
+        "--support-share",
+        type=float,
+        default=SUPPORT_SHARE,
+        help=f"share of the views showing a spatial prompt's support whose mask takes it in "
+        f"(default {SUPPORT_SHARE}; #38 saw 0.3-0.4)",
+    )
     a = ap.parse_args(argv)
     sets = chosen(ap, "--res", a.res, list(STRESS_SETS), at_least_one=True)
+    if not 0.0 < a.support_share <= 1.0:
+        ap.error(f"--support-share: {a.support_share} is not in (0, 1]")
     if a.out.exists():
         if not (a.out / "prompts.json").is_file():
             ap.error(f"{a.out}: exists and is not a room (no prompts.json)")
@@ -264,9 +284,8 @@ def main(argv: list[str] | None = None) -> None:
         room = extend_room(a.src, a.out, THIN_PROMPTS + HELD_OUT_PROMPTS)
     tools = a.tools or Path(a.src).resolve().parent / "tools"
     for name in sets:
-        doc = json.loads(
-            (add_stress(room, a.src, name, tools, a.mask_seed) / "stress.json").read_text()
-        )
+        made = add_stress(room, a.src, name, tools, a.mask_seed, a.support_share)
+        doc = json.loads((made / "stress.json").read_text())
         for pid, d in doc["prompts"].items():
             changed = d.get("with_support", d.get("tight", []))
             print(f"{name} {pid}: {len(changed)} of {len(d['views'])} views changed")

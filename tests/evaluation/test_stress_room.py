@@ -66,6 +66,30 @@ def test_support_masks_take_the_support_in_on_a_third_of_the_views(tmp_path):
     assert (tmp_path / "s" / "p01").resolve() == (DEV_ROOM / "res" / "p01").resolve()
 
 
+def test_a_larger_support_share_takes_the_support_in_on_more_views_and_the_same_ones(tmp_path):
+    """The stress set at the top of #38's range and beyond: the same seed's draws are nested, so
+    a larger share only adds views to the ones a smaller share took."""
+    room = extend_room(DEV_ROOM, tmp_path / "room", ())
+    _only(room, "p07")
+    tool = TOOLS / "res_masks.py"
+    took = {}
+    for share in (SUPPORT_SHARE, 0.45):
+        made = support_masks(room, DEV_ROOM / "res", tmp_path / f"s{share}", tool, 0, share)
+        d = made["p07"]
+        assert len(d["with_support"]) == round(share * len(d["support_shown"]))
+        took[share] = set(d["with_support"])
+    assert took[SUPPORT_SHARE] < took[0.45]
+
+
+@pytest.mark.parametrize("share", ["0", "1.5", "nan"])
+def test_a_support_share_out_of_range_is_refused_before_anything_is_made(tmp_path, capsys, share):
+    with pytest.raises(SystemExit) as e:
+        main([str(DEV_ROOM), str(tmp_path / "room"), "--res", "support", "--support-share", share])
+    assert e.value.code == 2
+    assert f"--support-share: {float(share)} is not in (0, 1]" in capsys.readouterr().err
+    assert not (tmp_path / "room").exists()
+
+
 @pytest.mark.slow
 def test_parts_masks_leave_the_same_parts_of_a_big_object_out(tmp_path):
     """A tight box on half the views: SAM answers with the part inside, the bookcase loses
