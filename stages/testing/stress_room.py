@@ -284,8 +284,8 @@ def main(argv: list[str] | None = None) -> None:
         room = extend_room(a.src, a.out, THIN_PROMPTS + HELD_OUT_PROMPTS)
     tools = a.tools or Path(a.src).resolve().parent / "tools"
     for name in sets:
-        made = add_stress(room, a.src, name, tools, a.mask_seed, a.support_share)
-        doc = json.loads((made / "stress.json").read_text())
+        set_dir = add_stress(room, a.src, name, tools, a.mask_seed, a.support_share)
+        doc = json.loads((set_dir / "stress.json").read_text())
         for pid, d in doc["prompts"].items():
             changed = d.get("with_support", d.get("tight", []))
             print(f"{name} {pid}: {len(changed)} of {len(d['views'])} views changed")
