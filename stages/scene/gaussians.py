@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -80,6 +81,7 @@ class Gaussians:
     sh: np.ndarray  # [N, K, 3] float32, K = (degree + 1)^2, coefficient-major
     sh_degree: int
     valid: np.ndarray = field(default_factory=lambda: np.ones(0, bool))  # [N] renderable
+    comments: list[str] = field(default_factory=list)  # the header's comment lines, in order
 
     @property
     def count(self) -> int:
@@ -228,15 +230,33 @@ def load_ply(path: str | os.PathLike[str]) -> Gaussians:
         scales = np.exp(np.minimum(log_scales, 80.0)).astype(np.float32)
         opacities = (1.0 / (1.0 + np.exp(-op_logit))).astype(np.float32)
     return Gaussians(
-        p, vertex, means, quats.astype(np.float32), scales, opacities, sh, degree, valid
+        p,
+        vertex,
+        means,
+        quats.astype(np.float32),
+        scales,
+        opacities,
+        sh,
+        degree,
+        valid,
+        list(ply.comments),
     )
 
 
-def save_ply(path: str | os.PathLike[str], vertex: np.ndarray, force: bool = False) -> None:
-    """Write a vertex table as a binary little-endian PLY, atomically."""
+def save_ply(
+    path: str | os.PathLike[str],
+    vertex: np.ndarray,
+    force: bool = False,
+    comments: Sequence[str] = (),
+) -> None:
+    """Write a vertex table as a binary little-endian PLY, atomically, with `comments` as the
+    header's comment lines (printable ASCII: readers decode the header as ASCII, goi too)."""
     from numpy.lib.recfunctions import repack_fields
 
+    bad = [c for c in comments if not (c.isascii() and c.isprintable())]
+    if bad:  # a caller's bug, never the user's: comments are built by goi
+        raise ValueError(f"PLY comment {bad[0][:60]!r} is not printable ASCII")
     le = repack_fields(vertex).astype(repack_fields(vertex).dtype.newbyteorder("<"))
     el = plyfile.PlyElement.describe(le, "vertex")
     with atomic_path(path, force) as tmp:
-        plyfile.PlyData([el], text=False, byte_order="<").write(str(tmp))
+        plyfile.PlyData([el], text=False, byte_order="<", comments=list(comments)).write(str(tmp))
