@@ -387,16 +387,28 @@ def select_cmd(
     click.echo(f"selection ({int(sel.sum())} of {sel.size} Gaussians): {out}")
 
 
-@click.command("export-ply", short_help="Write the selection, or the scene without it, as a PLY.")
+@click.command("export-ply", short_help="Write a selection, or the scene's labels, as a PLY.")
 @scene_options
-@click.option("--selection", type=EXISTING, required=True, help="Selection artifact (goi select).")
+@click.option("--selection", type=EXISTING, help="Selection artifact (goi select).")
+@click.option(
+    "--labels",
+    "labels",
+    multiple=True,
+    metavar="NAME=SELECTION.h5",
+    help="Instead of --selection: write the whole scene with a label and a score per Gaussian, "
+    "one id per named selection (repeat the option: ids 1, 2, ... in the order given; where "
+    "selections overlap the higher score wins, then the first given).",
+)
 @click.option("--field", type=EXISTING, help="Field artifact, for --semantics.")
 @dataclass_options(PlyExportRun)
 @dataclass_options(PlyEditParams)
-def export_ply_cmd(selection: Path, field: Path | None, **kw) -> None:
+def export_ply_cmd(
+    selection: Path | None, labels: tuple[str, ...], field: Path | None, **kw
+) -> None:
     """Write the selection as an INRIA-layout PLY: only the Gaussians of interest (default),
     the scene without them (--invert), with them recoloured (--highlight) or moved
-    (--translate). Readable by splat viewers and by goi."""
+    (--translate); or, with --labels, the whole scene with the named selections as `label`
+    and `score` properties. Readable by splat viewers and by goi."""
     from stages.core.files import refuse_inputs
     from stages.query.export_ply import export_ply
     from stages.query.selection import load_selection
@@ -404,11 +416,50 @@ def export_ply_cmd(selection: Path, field: Path | None, **kw) -> None:
 
     scene = load_scene_from(kw)
     p, run = build(PlyEditParams, kw), build(PlyExportRun, kw)
+    if labels:
+        from stages.query.ply_labels import export_labels
+
+        _not_with_labels(selection, field, p)
+        refuse_inputs({"--out": run.out}, [scene.ply_path, *scene.camera_files])
+        out, lab, overlapping = export_labels(
+            scene.gaussians, scene.ply_digest(), labels, run.out, run.force
+        )
+        counts = lab.counts()
+        named = ", ".join(f"{i} {nm!r} {counts[i]}" for i, nm in enumerate(lab.names, start=1))
+        click.echo(f"ply ({counts.sum()} Gaussians; labels {named}; {counts[0]} in none): {out}")
+        if overlapping:
+            click.echo(
+                f"{overlapping} Gaussians are in several selections: each took the label with "
+                "the higher score (of equal scores, the one given first)"
+            )
+        return
+    if selection is None:
+        raise click.UsageError("Missing option '--selection' (or give --labels NAME=SELECTION.h5).")
     refuse_inputs({"--out": run.out}, [selection, field, scene.ply_path, *scene.camera_files])
     f = load_field_for(field, scene.ply_digest()) if field is not None else None
     sel = load_selection(selection)
     out, n = export_ply(scene.gaussians, sel, scene.ply_digest(), p, run, f)
     click.echo(f"ply ({n} Gaussians): {out}")
+
+
+def _not_with_labels(selection: Path | None, field: Path | None, p: PlyEditParams) -> None:
+    """export-ply --labels: the edits and --selection mean nothing there; refused, not ignored."""
+    from dataclasses import fields
+
+    from stages.core.errors import GoiError
+
+    given = ["--selection"] if selection is not None else []
+    given += ["--field"] if field is not None else []
+    given += [
+        "--" + f.name.replace("_", "-")
+        for f in fields(PlyEditParams)
+        if getattr(p, f.name) != f.default
+    ]
+    if given:
+        raise GoiError(
+            f"{given[0]}: not with --labels, which writes the whole scene unchanged with a "
+            "label and a score per Gaussian"
+        )
 
 
 @click.command("query", short_help="Answer a prompt: hyperplane, masks, selection and PLY.")

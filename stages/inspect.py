@@ -7,6 +7,7 @@ import os
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import h5py
 import numpy as np
@@ -15,6 +16,9 @@ from schemas import validate_file
 from stages.core.errors import GoiError
 from stages.core.files import regular_file
 from stages.scene.gaussians import load_ply
+
+if TYPE_CHECKING:
+    from stages.query.ply_labels import Labels
 
 
 def inspect_ply(path: Path) -> tuple[list[str], list[str]]:
@@ -36,7 +40,32 @@ def inspect_ply(path: Path) -> tuple[list[str], list[str]]:
         f"{int((g.opacities < 1 / 255).sum())} below 1/255",
         f"  scale         median {np.median(g.scales):.4g}, max {g.scales.max():.4g}",
     ]
+    from stages.query.ply_labels import labels_of
+
+    try:
+        labels = labels_of(g)
+    except GoiError as e:
+        return [*lines, "  labels        (unreadable)"], [*problems, str(e)]
+    if labels is not None:
+        lines += _describe_labels(labels)
     return lines, problems
+
+
+def _describe_labels(labels: Labels) -> list[str]:
+    """The named selections of a labels PLY: ids, names, counts and scores."""
+    counts = labels.counts()
+    lines = [
+        f"  labels        {len(labels.names)} named selections (goi.labels_ply "
+        f"{labels.version}; overlaps: {labels.overlap or '?'})",
+        f"  label 0       (none): {counts[0]} Gaussians",
+    ]
+    for i, name in enumerate(labels.names, start=1):
+        score = labels.score[labels.label == i]
+        line = f"  label {i:<8d}{json.dumps(name)}: {counts[i]} Gaussians"
+        if score.size:
+            line += f", score median {np.median(score):.3f}, min {score.min():.3f}"
+        lines.append(line)
+    return lines
 
 
 def _describe_h5(f: h5py.File) -> list[str]:

@@ -1,7 +1,8 @@
 """`goi export-ply`: the paper's edits of the Gaussians of interest, as an INRIA PLY.
 
 The subset alone, the scene without it (deletion), with it recoloured (highlight) or moved
-(translate), optionally with the field's per-Gaussian features as sem_* properties.
+(translate), optionally with the field's per-Gaussian features as sem_* properties. Named
+selections as labels of the whole scene: `stages.query.ply_labels`.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy as np
 from stages.core.artifacts import check_writable
 from stages.core.errors import GoiError
 from stages.core.files import refuse_inputs
+from stages.query.ply_labels import LABEL, goi_comments
 from stages.query.selection import Selection
 from stages.scene.gaussians import SH_C0, Gaussians, save_ply
 from stages.semantics.field import Field
@@ -146,5 +148,7 @@ def export_ply(
                 + ("" if o.invert else "; nothing was selected")
             )
         v = v[keep]
-    save_ply(run.out, v, run.force)
+    # a labelled scene's labels stay named in its edits (every edit keeps the properties)
+    carried = goi_comments(g) if LABEL in (v.dtype.names or ()) else []
+    save_ply(run.out, v, run.force, carried)
     return Path(run.out), len(v)
