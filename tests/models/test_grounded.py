@@ -162,7 +162,7 @@ def test_bad_checkpoints_are_refused_before_any_export(res_checkpoints, tmp_path
         ([ck["sam"]], ("needs a Grounding DINO or an OWLv2 checkpoint too",)),
         ([ck["detector"], ck["sam"], ck["clipseg"]], ("one RES",)),
         ([ck["clipseg"], ck["clipseg"]], ("both clipseg checkpoints",)),
-        ([ck["detector"], wrong], ("wrong", "weights are missing", "another architecture")),
+        ([ck["detector"], wrong], ("wrong", "SAM model reads are missing", "another architecture")),
     ]
     for sources, words in cases:
         capsys.readouterr()

@@ -748,7 +748,7 @@ def test_a_safetensors_error_while_loading_is_one_line(tmp_path, monkeypatch):
             raise SafetensorError("Error while deserializing header: invalid offset")
 
     with pytest.raises(GoiError, match=r"cannot load it as a SAM checkpoint \(Error while"):
-        load_model(Model, tmp_path, "SAM")
+        load_model(Model, tmp_path, "SAM", {})
 
 
 @pytest.mark.slow

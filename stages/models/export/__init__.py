@@ -15,7 +15,8 @@ Each SOURCE is a checkpoint directory, recognised by its config.json (safetensor
   checkpoint, a directory holding a SAM already in segment-anything's ONNX layout (no
   config.json; an encoder and a decoder .onnx) is copied in as it is (`sam_onnx`).
 A bundle holds at most one encoder source and one RES. Every source is read and checked before
-anything is exported (its config, weights and tokenizer, then the model itself is loaded);
+anything is exported (its config, weights' headers and tokenizer, then the model itself is
+loaded, refused when a weight it needs is missing, of another shape or of another dtype's kind);
 every exported ONNX file is run once with onnxruntime and compared with
 torch before the bundle is written (`common`), and the bundle appears complete or not at all.
 Needs the optional extra `goi[export]` (transformers).
@@ -28,7 +29,7 @@ import json
 import shutil
 import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -41,8 +42,8 @@ from stages.core.report import SILENT, Report
 from stages.models.bundle import MANIFEST, load_bundle
 from stages.models.export.common import (
     check_config,
+    check_weights,
     checkpoint_json,
-    has_weights,
     load_model,
     preprocessor,
     tokenizer_json,
@@ -72,6 +73,9 @@ CLASSES = {
     "sam2": ("Sam2Model", "SAM 2"),
     "clipseg": ("CLIPSegForImageSegmentation", "CLIPSeg"),
 }
+#: kind -> the prefixes of weights its export never runs, which a checkpoint may lack (a
+#: sentence-transformers model is pooled from its last hidden states, not by BERT's pooler).
+UNUSED = {"sentence": ("pooler.",)}
 
 
 @dataclass
@@ -130,13 +134,15 @@ class Source:
     config: dict
     tokenizer: str | None = None  # tokenizer.json text
     modules: list | None = None  # sentence-transformers' modules.json
+    tensors: dict[str, tuple[Path, str]] = field(default_factory=dict)  # check_weights
     model: Any = None  # the loaded transformers model, until it is exported
 
     def load(self) -> None:
         if self.kind == "sam-onnx":  # ONNX graphs, checked by find_pair already
             return
         cls, what = CLASSES[self.kind]
-        self.model = load_model(getattr(transformers(), cls), self.path, what)
+        unused = UNUSED.get(self.kind, ())
+        self.model = load_model(getattr(transformers(), cls), self.path, what, self.tensors, unused)
 
     def take(self) -> Any:
         """The model, handed over once (so the export holds the only reference)."""
@@ -178,8 +184,7 @@ def _source(path: Path, opts: ModelExportParams) -> Source:
     # what builds the model and what feeds it, checked before anything is built
     check_config(cfg, src / "config.json", str(model_type))
     preprocessor(src)
-    has_weights(src)
-    s = Source(src, kind, cfg, modules=modules)
+    s = Source(src, kind, cfg, modules=modules, tensors=check_weights(src, cfg))
     if kind == "sam" and opts.sam_size:
         patch = int((cfg.get("vision_config") or {}).get("patch_size", 16))
         if opts.sam_size % patch:

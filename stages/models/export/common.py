@@ -47,17 +47,27 @@ def checkpoint_json(path: Path) -> Any:
     return read_json(path, "missing (a Hugging Face checkpoint directory needs it)")
 
 
-def has_weights(src: Path) -> None:
-    """The checkpoint holds safetensors weights, and only those are ever read: goi never hands
-    a pickle (a .bin) to torch. `model.safetensors` has a sound header, or
-    `model.safetensors.index.json` names only .safetensors shards of this directory, each with a
-    sound header; anything else is refused before transformers opens a file."""
+def check_weights(src: Path, cfg: dict) -> dict[str, tuple[Path, str]]:
+    """The checkpoint's tensors (name -> file, dtype), from the safetensors files transformers
+    will read, each header checked before transformers opens a file. It reads config.json's
+    `transformers_weights` when it names a file, else `model.safetensors`, else the shards
+    that `model.safetensors.index.json` names. Only safetensors are ever read: goi never hands
+    a pickle (a .bin) to torch."""
     single, index = src / "model.safetensors", src / "model.safetensors.index.json"
-    if single.exists() or single.is_symlink():
-        check_safetensors(single)
+    named = cfg.get("transformers_weights")
+    if named is not None:
+        ok = isinstance(named, str) and named.endswith((".safetensors", ".safetensors.index.json"))
+        if not (ok and _own_file(named)):
+            raise GoiError(
+                f"{src / 'config.json'}: 'transformers_weights' is {str(named)[:80]!r}; goi "
+                "reads a .safetensors file (or its .safetensors.index.json) of the checkpoint "
+                "directory only"
+            )
+        files = _shards(src / named) if named.endswith(".json") else [named]
+    elif single.exists() or single.is_symlink():
+        files = [single.name]
     elif index.exists() or index.is_symlink():
-        for shard in _shards(index):
-            check_safetensors(src / shard)
+        files = _shards(index)
     else:
         bins = (
             "; it has pytorch_model.bin, which goi does not load"
@@ -65,6 +75,19 @@ def has_weights(src: Path) -> None:
             else ""
         )
         raise GoiError(f"{src}: no model.safetensors{bins} (goi reads safetensors weights only)")
+    tensors: dict[str, tuple[Path, str]] = {}
+    for name in files:
+        for tensor, dtype in check_safetensors(src / name).items():
+            if tensor in tensors:  # which one transformers keeps depends on the order it reads
+                raise GoiError(
+                    f"{src / name}: tensor {tensor[:80]!r} is in {tensors[tensor][0].name} too"
+                )
+            tensors[tensor] = (src / name, dtype)
+    return tensors
+
+
+def _own_file(name: str) -> bool:
+    return Path(name).name == name and not name.startswith(".")
 
 
 def _shards(index: Path) -> list[str]:
@@ -79,7 +102,7 @@ def _shards(index: Path) -> list[str]:
                 f"{index}: names the shard {name[:80]!r}, which is not a .safetensors file; "
                 "goi reads safetensors weights only (never a pickled .bin)"
             )
-        if Path(name).name != name or name.startswith("."):
+        if not _own_file(name):
             raise GoiError(f"{index}: the shard {name[:80]!r} is not a file of this directory")
     return shards
 
@@ -91,9 +114,14 @@ _DTYPE_BYTES = {
 }  # fmt: skip
 
 
-def check_safetensors(path: Path) -> None:
+#: The floating-point safetensors dtypes (the others are integers and booleans).
+_FLOATS = {"F8_E4M3", "F8_E5M2", "F16", "BF16", "F32", "F64"}
+
+
+def check_safetensors(path: Path) -> dict[str, str]:
     """A safetensors file whose header is sound: an 8-byte length, that many bytes of a JSON
-    object, and each tensor's dtype, shape and byte range inside the file and consistent."""
+    object, and each tensor's dtype, shape and byte range inside the file and consistent (its
+    bytes are exactly shape x dtype's). Returns each tensor's dtype."""
     import json
 
     p = regular_file(path, "safetensors weights file")
@@ -116,22 +144,15 @@ def check_safetensors(path: Path) -> None:
         raise GoiError(f"{p}: its header's __metadata__ is not a mapping of texts")
     data = size - 8 - n
     ranges: list[tuple[int, int, str]] = []
+    dtypes: dict[str, str] = {}
     for name, t in header.items():
         if name == "__metadata__":
             continue
-        ok = isinstance(t, dict) and t.get("dtype") in _DTYPE_BYTES
-        shape = t.get("shape") if ok else None
-        offsets = t.get("data_offsets") if ok else None
-        ok = ok and isinstance(shape, list) and all(_count(d) for d in shape)
-        ok = ok and isinstance(offsets, list) and len(offsets) == 2 and all(map(_count, offsets))
-        if ok and isinstance(shape, list) and isinstance(offsets, list):
-            elements = int(np.prod(shape, dtype=object)) if shape else 1
-            a, b = offsets
-            ok = a <= b <= data and b - a == elements * _DTYPE_BYTES[t["dtype"]]
-        if not ok:
-            raise GoiError(f"{p}: tensor {str(name)[:80]!r} has a broken header entry")
-        assert isinstance(offsets, list)
-        ranges.append((offsets[0], offsets[1], str(name)))
+        why = _entry_fault(t, data)
+        if why:
+            raise GoiError(f"{p}: tensor {str(name)[:80]!r} has a broken header entry ({why})")
+        ranges.append((t["data_offsets"][0], t["data_offsets"][1], str(name)))
+        dtypes[str(name)] = t["dtype"]
     # Each tensor owns its bytes: two tensors over the same bytes (aliased or overlapping)
     # would be two names for one memory, and safetensors refuses them only when loading.
     ranges.sort()
@@ -145,39 +166,112 @@ def check_safetensors(path: Path) -> None:
             raise GoiError(f"{p}: tensor {second[:80]!r} does not start where the one before ends")
     if ranges and (ranges[0][0] != 0 or ranges[-1][1] != data):
         raise GoiError(f"{p}: its tensors do not fill the data that follows the header")
+    return dtypes
+
+
+def _entry_fault(t: object, data: int) -> str:
+    """What is wrong with one tensor's header entry, given the bytes of data after the header
+    ('' when nothing is)."""
+    if not isinstance(t, dict) or t.get("dtype") not in _DTYPE_BYTES:
+        dtype = t.get("dtype") if isinstance(t, dict) else None
+        return f"dtype {str(dtype)[:20]!r} is not a safetensors dtype"
+    shape, offsets = t.get("shape"), t.get("data_offsets")
+    if not (isinstance(shape, list) and all(map(_count, shape))):
+        return "its shape is not a list of sizes"
+    if not (isinstance(offsets, list) and len(offsets) == 2 and all(map(_count, offsets))):
+        return "its data_offsets are not two byte offsets"
+    a, b = offsets
+    if not a <= b <= data:
+        return f"its bytes [{a}, {b}) are not inside the {data} bytes of data"
+    need = (int(np.prod(shape, dtype=object)) if shape else 1) * _DTYPE_BYTES[t["dtype"]]
+    if b - a != need:
+        return f"{t['dtype']} {shape} is {need} bytes, but its data_offsets hold {b - a}"
+    return ""
 
 
 def _count(v: object) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
-def load_model(cls: Any, src: Path, what: str) -> Any:
-    """A transformers model from a local safetensors checkpoint, frozen, in eval mode.
+def load_model(
+    cls: Any,
+    src: Path,
+    what: str,
+    tensors: dict[str, tuple[Path, str]],
+    unused: tuple[str, ...] = (),
+) -> Any:
+    """A transformers model from a local safetensors checkpoint whose `tensors` (name -> file,
+    dtype: check_weights) are checked, frozen, in eval mode.
 
-    A checkpoint that leaves more than half of the model's weights uninitialised is refused
-    (its config says one architecture, its weights are another's); fewer missing weights are
-    named in a warning."""
+    Every weight the model reads must come from the checkpoint as its header says
+    (check_loaded); `unused` are the prefixes of weights the export never runs, which may be
+    absent."""
     from safetensors import SafetensorError
 
     try:
         model, info = cls.from_pretrained(
-            str(src), attn_implementation="eager", use_safetensors=True, output_loading_info=True
+            str(src),
+            attn_implementation="eager",
+            use_safetensors=True,
+            output_loading_info=True,
+            ignore_mismatched_sizes=True,  # a mismatch is refused below, naming the tensor
         )
     except (OSError, ValueError, RuntimeError, KeyError, TypeError, SafetensorError) as e:
         first = str(e).strip().splitlines()[0][:200] if str(e).strip() else type(e).__name__
         raise GoiError(f"{src}: cannot load it as a {what} checkpoint ({first})") from None
-    missing = list(info.get("missing_keys", []))
-    total = len(model.state_dict())
-    if missing and len(missing) * 2 > total:
-        raise GoiError(
-            f"{src}: {len(missing)} of the {what}'s {total} weights are missing from "
-            "model.safetensors; it is another architecture's checkpoint"
-        )
-    if missing:
-        warn(f"{src}: {len(missing)} weights were not in the checkpoint, e.g. {missing[0]}")
+    check_loaded(model.state_dict(), info, src, what, tensors, unused)
     model.eval()
     model.requires_grad_(False)  # the ONNX tracer refuses trainable tensors as constants
     return model
+
+
+def check_loaded(
+    state: dict[str, Any],
+    info: dict,
+    src: Path,
+    what: str,
+    tensors: dict[str, tuple[Path, str]],
+    unused: tuple[str, ...] = (),
+) -> None:
+    """The loaded model's `state` [name -> tensor] against transformers' loading `info` and
+    the checkpoint's `tensors` (name -> file, dtype). Refused: a weight the checkpoint lacks
+    (transformers draws it at random: the bundle would answer noise; tied weights and
+    non-persistent buffers are not in `info`'s missing keys), a tensor of another shape, and
+    a tensor whose dtype is not of the kind (floating point or integer) of the model's tensors
+    of that name (transformers casts the bytes as the header reads them: an F32 matrix labelled
+    I32 becomes weights near 1e9). The kinds are matched by the last part of the name, since
+    transformers may rename the rest (Grounding DINO's backbone, SAM 2.1's video layout)."""
+    mismatched = sorted(info.get("mismatched_keys", []))
+    if mismatched:
+        name, got, want = mismatched[0]
+        more = f" (and {len(mismatched) - 1} more)" if len(mismatched) > 1 else ""
+        raise GoiError(
+            f"{src}: tensor {name!r} is {list(got)} in the checkpoint, but the {what} model "
+            f"reads {list(want)}{more}"
+        )
+    missing = sorted(k for k in info.get("missing_keys", []) if not k.startswith(unused))
+    if missing:
+        first = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
+        why = (
+            "is it another architecture's checkpoint?"
+            if len(missing) * 2 > len(state)
+            else "transformers would initialise them at random"
+        )
+        raise GoiError(
+            f"{src}: {len(missing)} of the {len(state)} weights the {what} model reads are "
+            f"missing from the checkpoint ({first}); {why}"
+        )
+    kinds: dict[str, set[bool]] = {}
+    for key, value in state.items():
+        kinds.setdefault(key.rsplit(".", 1)[-1], set()).add(bool(value.is_floating_point()))
+    for name, (file, dtype) in sorted(tensors.items()):
+        kind = kinds.get(name.rsplit(".", 1)[-1], set())
+        if len(kind) == 1 and kind != {dtype in _FLOATS}:
+            want = "floating point" if True in kind else "integers"
+            raise GoiError(
+                f"{file}: tensor {name[:80]!r} is {dtype} in its header, but the {what} model "
+                f"reads {want} there (transformers would convert the bytes as {dtype} values)"
+            )
 
 
 def preprocessor(src: Path) -> dict:
