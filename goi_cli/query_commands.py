@@ -25,6 +25,7 @@ from stages.query.lift_math import LiftParams
 from stages.query.masks import MaskParams, MaskRun
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryRun
+from stages.query.pointing import PointParams
 
 field_option = click.option(
     "--field", type=EXISTING, required=True, help="Field artifact (goi fit-field)."
@@ -38,6 +39,75 @@ field_or_lift_option = click.option(
     "Gaussians no view's evidence reaches stay out.",
 )
 prompt_option = click.option("--prompt", required=True, help="The text query.")
+#: select / query: the text query, or clicks and boxes, or both.
+prompt_or_points_option = click.option(
+    "--prompt",
+    help="The text query (optional with --click/--box: they then refine its answer).",
+)
+
+
+def _clicks(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> list:
+    from stages.core.errors import GoiError
+    from stages.query.pointing import parse_click
+
+    try:
+        return [parse_click(v) for v in values]
+    except GoiError as e:
+        raise click.BadParameter(str(e).removeprefix("--click: ")) from None
+
+
+def _boxes(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> list:
+    from stages.core.errors import GoiError
+    from stages.query.pointing import parse_box
+
+    try:
+        return [parse_box(v) for v in values]
+    except GoiError as e:
+        raise click.BadParameter(str(e).removeprefix("--box: ")) from None
+
+
+#: select / query: clicks and boxes answered by a bundle's SAM (stages.query.pointing).
+point_options = stack(
+    click.option(
+        "--click",
+        "clicks",
+        multiple=True,
+        metavar="VIEW:U,V[:+|-]",
+        callback=_clicks,
+        help="A click at pixel column U, row V of VIEW's image (a training view, or a camera "
+        "of --camera-file): + (default) adds what is there, grown to --granularity; - takes "
+        "the part clicked out. Repeatable; alone or refining --prompt's answer. Needs --bundle "
+        "with a SAM (and uses --res-index's image side when given).",
+    ),
+    click.option(
+        "--box",
+        "boxes",
+        multiple=True,
+        metavar="VIEW:X0,Y0,X1,Y1",
+        callback=_boxes,
+        help="A box at VIEW (pixels of its image): what SAM outlines in it is added. Repeatable.",
+    ),
+    path_option(
+        "--camera-file",
+        "Cameras (cameras.json, transforms.json or COLMAP) a --click or --box may name besides "
+        "the scene's: a click at any novel view (the 3D point is goi's render's surface there).",
+    ),
+    dataclass_options(PointParams),
+)
+
+
+def build_points(kw: dict):  # noqa: ANN201
+    """The clicks and boxes from the parsed keyword arguments (removing them); the pointing
+    options without a click or box are refused, never ignored."""
+    from stages.core.errors import GoiError
+    from stages.query.point_files import Points
+
+    pts = Points(kw.pop("clicks"), kw.pop("boxes"), build(PointParams, kw), kw.pop("camera_file"))
+    if not pts and (pts.params != PointParams() or pts.camera_file is not None):
+        raise GoiError("--granularity, --point-views, ..., --camera-file: only with --click/--box")
+    return pts
+
+
 hyperplanes_option = click.option(
     "--hyperplanes", type=EXISTING, required=True, help="Hyperplanes artifact (fit-hyperplane)."
 )
@@ -321,7 +391,8 @@ def render_mask_cmd(
 
 
 @click.command("select", short_help="Select the prompt's 3D Gaussians of interest.")
-@answer_options
+@stack(scene_options, field_or_lift_option, prompt_or_points_option, plane_or_lift_option,
+       source_options, lift_options, point_options)  # fmt: skip
 @click.option(
     "--mode",
     type=click.Choice(("hyperplane", "threshold")),
@@ -333,7 +404,7 @@ def render_mask_cmd(
 @click.option("--force", is_flag=True, help="Overwrite an existing output.")
 def select_cmd(
     field: Path | None,
-    prompt: str,
+    prompt: str | None,
     hyperplanes: Path | None,
     mode: str,
     out: Path,
@@ -342,7 +413,13 @@ def select_cmd(
 ) -> None:
     """Select the 3D Gaussians of interest: those whose decoded feature is on the plane's
     positive side (with --lift: the RES masks of many views lifted onto the Gaussians and
-    fused with the field). Writes a selection artifact for export-ply."""
+    fused with the field). Writes a selection artifact for export-ply.
+
+    With --click/--box (and a --bundle with a SAM): what SAM outlines at each click or box in
+    the training views that see it, lifted onto the Gaussians and voted, grown from the part
+    clicked to the object (--granularity); alone, or added to (+) and taken out of (-) the
+    prompt's answer. No field or index is needed.
+    """
     from stages.core.artifacts import check_writable, input_digest
     from stages.core.files import refuse_inputs
     from stages.query.hyperplanes import load_plane
@@ -352,8 +429,17 @@ def select_cmd(
     from stages.semantics.field import load_field_for
 
     scene = load_scene_from(kw)
+    points = build_points(kw)
     check_writable(out, force, "--out")
-    refuse_inputs({"--out": out}, [field, hyperplanes, *_source_paths(kw), *_scene_files(scene)])
+    refuse_inputs({"--out": out}, [field, hyperplanes, points.camera_file, *_source_paths(kw),
+                                   *_scene_files(scene)])  # fmt: skip
+    if points:
+        _select_pointed(scene, field, prompt, hyperplanes, mode, out, force, points, kw)
+        return
+    if prompt is None:
+        from stages.core.errors import GoiError
+
+        raise GoiError("--prompt is needed (or --click / --box: clicks and boxes answered by SAM)")
     if kw["lift"]:
         from stages.query.lift_files import write_lifted_selection
 
@@ -385,6 +471,70 @@ def select_cmd(
     inputs = {"ply": scene.ply_digest(), **input_digest("field", field)}
     write_selection(out, sel, plane.prompt, mode, scene.ply_digest(), inputs, force)
     click.echo(f"selection ({int(sel.sum())} of {sel.size} Gaussians): {out}")
+
+
+def _select_pointed(  # noqa: ANN202
+    scene,  # noqa: ANN001
+    field: Path | None,
+    prompt: str | None,
+    hyperplanes: Path | None,
+    mode: str,
+    out: Path,
+    force: bool,
+    points,  # noqa: ANN001
+    kw: dict,
+):
+    """goi select with clicks and boxes: the prompt's answer first (when there is one), then
+    SAM's answers added and taken out."""
+    from stages.core.artifacts import input_digest
+    from stages.core.errors import GoiError
+    from stages.query.hyperplanes import load_plane
+    from stages.query.masks import plane_for
+    from stages.query.osh import THRESHOLD
+    from stages.query.point_files import open_pointer, write_pointed_selection
+    from stages.query.selection import select
+    from stages.render.rasterizer import Rasterizer
+    from stages.semantics.field import load_field_for
+
+    src = build(PromptSources, dict(kw))
+    if kw["lift"]:
+        _, refine = build_lift(dict(kw))
+        if refine.progressive:
+            raise GoiError("--progressive: not with --click/--box (the answer is written once)")
+    inputs: dict = {"ply": scene.ply_digest()}
+    base, how, lifted, evidence = None, "pointed", None, None
+    if prompt is None:
+        if field is not None or hyperplanes is not None:
+            raise GoiError(
+                "--field/--hyperplanes: only with --prompt (clicks and boxes alone are SAM's)"
+            )
+        _not_lifted(kw)
+        rast = Rasterizer.from_gaussians(scene.gaussians)
+    elif kw["lift"]:
+        ans, rast, lp = _lifted_answer(scene, field, prompt, kw)
+        base, how = ans.selected, "lifted"
+        lifted, evidence = ans.record(lp), (ans.lifted.S1, ans.lifted.S0)
+        if field is not None:
+            inputs.update(input_digest("field", field))
+    else:
+        _not_lifted(kw)
+        field = _need_field(field)
+        f = load_field_for(field, scene.ply_digest())
+        n_entries, dim = f.codebook.shape
+        plane = load_plane(_need_plane(hyperplanes), prompt, field, n_entries, dim)
+        base, how = select(f, plane_for(plane, mode, f, THRESHOLD)), mode
+        inputs.update(input_digest("field", field))
+        rast = Rasterizer.from_gaussians(scene.gaussians)
+    with open_pointer(scene, rast, points, src.bundle, src.res_index, TERMINAL) as pointer:
+        answer = pointer.answer(points.clicks, points.boxes, base)
+    text = prompt if prompt is not None else points.text()
+    write_pointed_selection(out, answer, scene, text, how, inputs, force, lifted, evidence)
+    n = int(answer.selected.sum())
+    was = "" if base is None else f", the prompt's answer {int(base.sum())}"
+    click.echo(
+        f"selection ({len(points.clicks)} clicks, {len(points.boxes)} boxes{was}; {n} of "
+        f"{answer.selected.size} Gaussians): {out}"
+    )
 
 
 @click.command("export-ply", short_help="Write a selection, or the scene's labels, as a PLY.")
@@ -465,27 +615,39 @@ def _not_with_labels(selection: Path | None, field: Path | None, p: PlyEditParam
 @click.command("query", short_help="Answer a prompt: hyperplane, masks, selection and PLY.")
 @scene_options
 @field_or_lift_option
-@prompt_option
+@prompt_or_points_option
 @source_options
+@point_options
 @dataclass_options(QueryRun)
 @dataclass_options(QueryParams)
 @dataclass_options(HyperplaneParams)
 @lift_options
-def query_cmd(field: Path | None, prompt: str, **kw) -> None:
+def query_cmd(field: Path | None, prompt: str | None, **kw) -> None:
     """Query the scene with a text prompt: fit the hyperplane unless cached, render masks,
-    select the Gaussians of interest and export them as a PLY. Prints where everything went."""
+    select the Gaussians of interest and export them as a PLY. Prints where everything went.
+
+    With --click/--box (and a --bundle with a SAM) the answer is SAM's at the clicks and
+    boxes, lifted onto the Gaussians (see goi select), alone or refining the prompt's; its
+    masks are rendered from the 3D selection.
+    """
     from stages.query.pipeline import run_query
     from stages.query.prompts import Prompt
 
     scene = load_scene_from(kw)
+    points = build_points(kw)
     src = build(PromptSources, kw)
     hp, qp, run = build(HyperplaneParams, kw), build(QueryParams, kw), build(QueryRun, kw)
     lp, refine = build_lift(kw)
-    q = Prompt.checked(prompt, src.prompt_id)
+    q = Prompt.checked(prompt, src.prompt_id) if prompt is not None else None
     with staged_outputs():  # masks, selection, PLY and the plane appear together, or not at all
-        r = run_query(scene, field, q, src, hp, qp, run, report=TERMINAL, lp=lp, refine=refine)
+        r = run_query(scene, field, q, src, hp, qp, run, report=TERMINAL, lp=lp, refine=refine,
+                      points=points)  # fmt: skip
     click.echo(f"prompt:     {r.prompt}")
-    if lp.lift:
+    if points:
+        answers = r.info["pointed"]["answers"]
+        views = sorted({v for a in answers for v in a["views"]})
+        click.echo(f"pointed:    {len(answers)} clicks/boxes, SAM in {len(views)} views")
+    elif lp.lift:
         click.echo(f"lifted:     {len(r.info['views'])} views ({r.info['chosen_by']})")
     elif qp.mode == "threshold":
         click.echo(f"hyperplane: none (--mode threshold: cosine > {hp.threshold})")

@@ -5,7 +5,8 @@ the manifest says) and returns dense features [1, D, h, w]; the text encoder tak
 [1, L] int64 (and optionally an attention mask) and returns [1, D]. A bundle's RES is either a
 single model (`res`: image + prompt -> mask scores, e.g. CLIPSeg), a Grounded-SAM pipeline
 (`grounded`: Grounding DINO + SAM, `stages.models.grounded`) or OWLv2 + SAM (`owl_sam`,
-`stages.models.owl`), the last split into an image side and a prompt side. goi checks each
+`stages.models.owl`), the last split into an image side and a prompt side; or a SAM alone
+(`sam`: no detector, so no text: it answers clicks and boxes). goi checks each
 model's inputs and outputs against the manifest before running it. No custom-operator library
 is ever registered, and manifest paths may not leave the bundle directory.
 """
@@ -26,7 +27,14 @@ from stages.core.errors import GoiError
 from stages.core.files import read_json
 from stages.models import res_processing as rp
 from stages.models.clipseg import ClipSegSplit, check_clipseg_spec
-from stages.models.grounded import GroundedSam, Grounding, ResPrompt, check_spec
+from stages.models.grounded import (
+    GroundedSam,
+    Grounding,
+    ResPrompt,
+    Sam,
+    check_sam_spec,
+    check_spec,
+)
 from stages.models.manifest import check_values
 from stages.models.onnx_io import (
     Tokens,
@@ -38,8 +46,10 @@ from stages.models.onnx_io import (
 )
 from stages.models.owl import OwlSam, check_owl_spec
 
-#: The manifest's RES sections; a bundle has at most one.
+#: The manifest's RES sections; a bundle has at most one of them and `sam`.
 RES_KINDS = ("res", "grounded", "owl_sam", "clipseg")
+#: A SAM alone: point and box prompts, no text (clicks and boxes, stages.query.pointing).
+SAM_ALONE = "sam"
 #: The RES kinds split into an image side and a prompt side, and their pipelines' attributes.
 SPLIT = {"grounded": "_grounded", "owl_sam": "_owl_sam", "clipseg": "_clipseg"}
 
@@ -172,6 +182,58 @@ class Bundle:
     @property
     def has_res(self) -> bool:
         return any(k in self.manifest for k in RES_KINDS)
+
+    @property
+    def has_sam(self) -> bool:
+        """Whether the bundle has a SAM to answer clicks and boxes: a SAM alone, or the SAM of
+        a Grounded-SAM or OWLv2 + SAM pipeline."""
+        return any(k in self.manifest for k in (SAM_ALONE, "grounded", "owl_sam"))
+
+    @cached_property
+    def sam(self) -> Sam:
+        """The bundle's SAM (see `has_sam`); refused, saying what is needed, when it has none."""
+        if SAM_ALONE in self.manifest:
+            spec = self.manifest[SAM_ALONE]
+            return Sam(self.root, spec["sam_encoder"], spec["sam_decoder"], SAM_ALONE, self.where)
+        if "grounded" in self.manifest:
+            return self._grounded.sam
+        if "owl_sam" in self.manifest:
+            return self._owl_sam.sam
+        raise GoiError(
+            f"{self.where}: this bundle has no SAM to answer clicks and boxes; give a bundle with "
+            "one (a SAM alone from `goi export-model DIR` on a SAM in segment-anything's ONNX "
+            "layout, Grounded-SAM or OWLv2 + SAM)"
+        )
+
+    # --- what a RES index keeps of an image: the RES's image side (the RES split, below), or a
+    # SAM alone's image embedding.
+    @property
+    def indexable(self) -> bool:
+        return self.res_indexable or SAM_ALONE in self.manifest
+
+    @property
+    def index_kind(self) -> str:
+        """What a RES index of this bundle keeps: the RES kind, or 'sam' for a SAM alone."""
+        return str(self.res_kind) if self.has_res else SAM_ALONE
+
+    def check_index(self) -> None:
+        """Open the models an index of this bundle runs and check their tensors."""
+        if self.has_res:
+            self.check_res()
+        else:
+            _ = self.sam.sessions
+
+    def image_side_spec(self) -> dict[str, tuple[tuple[int, ...], str]]:
+        """key -> (shape, dtype name) of what `image_side` returns."""
+        if self.has_res:
+            return self.res_image_side_spec()
+        return self.sam.side_spec()
+
+    def image_side(self, rgb: np.ndarray) -> dict[str, np.ndarray]:
+        """[H, W, 3] uint8 RGB -> the arrays a RES index keeps of it (see `indexable`)."""
+        if self.has_res:
+            return self.res_image_side(rgb)
+        return self.sam.image_side(rgb)
 
     @property
     def res_kind(self) -> str | None:
@@ -337,18 +399,18 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
     validate_json(manifest, "goi.bundle", str(mf))
     check_values(manifest, str(mf))  # every value typed, finite, in range: before any model
     encoders = [k for k in ("image_encoder", "text_encoder") if k in manifest]
-    res_kinds = [k for k in RES_KINDS if k in manifest]
+    res_kinds = [k for k in (*RES_KINDS, SAM_ALONE) if k in manifest]
     if not encoders and not res_kinds:
         raise GoiError(
             f"{mf}: needs at least one of 'image_encoder', 'text_encoder', 'res', 'grounded', "
-            "'owl_sam' and 'clipseg'"
+            "'owl_sam', 'clipseg' and 'sam'"
         )
     if encoders and "feature_dim" not in manifest:
         raise GoiError(f"{mf}: field 'feature_dim' is missing (needed with '{encoders[0]}')")
     if len(res_kinds) > 1:
         raise GoiError(
-            f"{mf}: a bundle has one RES: one of 'res', 'grounded', 'owl_sam' and 'clipseg', not "
-            f"{' and '.join(repr(k) for k in res_kinds)}"
+            f"{mf}: a bundle has one RES or SAM: one of 'res', 'grounded', 'owl_sam', 'clipseg' "
+            f"and 'sam', not {' and '.join(repr(k) for k in res_kinds)}"
         )
     res = manifest.get("res")
     if res is not None and not res.get("tokenizer") and "text_encoder" not in manifest:
@@ -371,6 +433,9 @@ def load_bundle(path: str | os.PathLike[str]) -> Bundle:
         check_owl_spec(root, manifest["owl_sam"], str(mf))
     if "clipseg" in manifest:
         check_clipseg_spec(root, manifest["clipseg"], str(mf))
+    if SAM_ALONE in manifest:
+        sam = manifest[SAM_ALONE]
+        check_sam_spec(root, sam["sam_encoder"], sam["sam_decoder"], SAM_ALONE, str(mf))
     return Bundle(root, manifest)
 
 

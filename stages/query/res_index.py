@@ -3,8 +3,8 @@ training view on the scene's photos, so a new prompt costs only the prompt side.
 
 Almost all of a RES model's work does not depend on the prompt (SAM's image encoder; OWLv2's
 ViT, box and objectness heads; CLIPSeg's visual activations). Indexing a view runs that part
-(`Bundle.res_image_side`) on its photo and stores the named arrays, in the dtypes the bundle
-declares (`Bundle.res_image_side_spec`: float16 where exact enough). A query then runs
+(`Bundle.image_side`) on its photo and stores the named arrays, in the dtypes the bundle
+declares (`Bundle.image_side_spec`: float16 where exact enough). A query then runs
 `Bundle.res_prompt` once and `Bundle.res_from_image_side` per view.
 
 An index grows: it may hold some of the scene's training views (schema 1.1). A lifted query
@@ -148,25 +148,27 @@ def _combined(digests: dict[str, str]) -> str:
 
 
 def indexable_bundle(bundle_dir: Path | Bundle, option: str = "--bundle") -> Bundle:
-    """The bundle, its RES opened and checked; refused when it has no image side to index."""
+    """The bundle, its RES (or SAM alone) opened and checked; refused when it has no image
+    side to index."""
     bundle = bundle_dir if isinstance(bundle_dir, Bundle) else load_bundle(bundle_dir)
-    if not bundle.has_res:
+    if not bundle.has_res and not bundle.has_sam:
         raise GoiError(
-            f"{option}: {bundle.root} has no RES ('res' or 'grounded'); nothing to index"
+            f"{option}: {bundle.root} has no RES ('res', 'grounded', 'owl_sam', 'clipseg') nor "
+            "SAM ('sam'); nothing to index"
         )
-    if not bundle.res_indexable:
+    if not bundle.indexable:
         raise GoiError(
             f"{option}: the RES of {bundle.root} has no prompt-independent image side to index; "
             "use it directly (--bundle) instead of --res-index"
         )
-    bundle.check_res()
+    bundle.check_index()
     return bundle
 
 
 def bundle_spec(bundle: Bundle) -> dict[str, tuple[tuple[int, ...], str]]:
     """The arrays the bundle's RES image side returns: key -> (shape, dtype name)."""
     return {k: (tuple(int(n) for n in s), str(np.dtype(d))) for k, (s, d) in
-            bundle.res_image_side_spec().items()}  # fmt: skip
+            bundle.image_side_spec().items()}  # fmt: skip
 
 
 def _partial(out: Path) -> Path:
@@ -301,7 +303,7 @@ class IndexWriter:
         if mode == "w":
             f.attrs.update(
                 bundle_name=self.bundle.name,
-                res_kind=str(self.bundle.res_kind),
+                res_kind=self.bundle.index_kind,
                 arrays=json.dumps({k: [list(s), d] for k, (s, d) in self.spec.items()}),
             )
             f.create_group("views", track_order=True)
@@ -339,8 +341,8 @@ class IndexWriter:
         if cam.name in self.views:
             return self.image_side(cam.name)
         t = time.perf_counter()
-        arrays = self.bundle.res_image_side(self.scene.load_image(cam))
-        _check_arrays(arrays, self.spec, f"{self.bundle.where}: res_image_side of view {cam.name}")
+        arrays = self.bundle.image_side(self.scene.load_image(cam))
+        _check_arrays(arrays, self.spec, f"{self.bundle.where}: image side of view {cam.name}")
         self._write(cam.name, arrays, (cam.width, cam.height))
         self.seconds.append(time.perf_counter() - t)
         n = len(self.seconds)

@@ -45,6 +45,7 @@ class Selection:
     mode: str
     ply_sha256: str
     lifted: dict | None = None  # lifted mode: views, evidence per view, parameters
+    pointed: dict | None = None  # clicks and boxes: what they were, the views SAM answered in
 
 
 def write_selection(
@@ -57,8 +58,10 @@ def write_selection(
     force: bool = False,
     lifted: dict | None = None,
     evidence: tuple[np.ndarray, np.ndarray] | None = None,
+    pointed: dict | None = None,
 ) -> Path:
-    """`lifted` (a JSON-able record) and `evidence` (S1, S0 [G]) for a lifted selection."""
+    """`lifted` (a JSON-able record) and `evidence` (S1, S0 [G]) for a lifted selection;
+    `pointed` (a JSON-able record) for one made or refined by clicks and boxes."""
     with write_h5(path, SCHEMA, inputs, force) as f:
         f.attrs["prompt"] = prompt
         f.attrs["mode"] = mode
@@ -72,6 +75,8 @@ def write_selection(
             if evidence is not None:
                 put(g, "S1", evidence[0].astype(np.float32), compress=True)
                 put(g, "S0", evidence[1].astype(np.float32), compress=True)
+        if pointed is not None:
+            f.create_group("pointed").attrs["record"] = json.dumps(pointed, sort_keys=True)
     return Path(path)
 
 
@@ -86,6 +91,7 @@ def load_selection(path: str | os.PathLike[str]) -> Selection:
             str(f.attrs["mode"]),
             str(f.attrs["ply_sha256"]),
             json.loads(str(f["lifted"].attrs["record"])) if "lifted" in f else None,
+            json.loads(str(f["pointed"].attrs["record"])) if "pointed" in f else None,
         )
         if int(f.attrs["n_selected"]) != int(sel.selected.sum()):
             raise GoiError(f"{path}: attribute 'n_selected' does not count the selected Gaussians")

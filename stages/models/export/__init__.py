@@ -227,10 +227,11 @@ def _plan(sources: list[Source]) -> dict[str, Source]:
             f"SOURCE: {by_kind[detector].path} alone makes no RES; a detector needs a SAM "
             "checkpoint (or a SAM ONNX directory) too"
         )
-    if "sam" in by_kind and detector is None:
+    if "sam" in by_kind and detector is None and res:
         raise GoiError(
-            f"SOURCE: {by_kind['sam'].path} alone makes no RES; SAM needs a Grounding DINO or "
-            "an OWLv2 checkpoint too"
+            f"SOURCE: a bundle has one RES or SAM: {by_kind[res[0]].path.name} and "
+            f"{by_kind['sam'].path.name} go in two bundles (a SAM with no detector is a SAM "
+            "alone, for clicks and boxes)"
         )
     return by_kind
 
@@ -293,10 +294,14 @@ def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report:
         thr = opts.res_threshold
         how = export_clipseg if opts.clipseg_whole else export_clipseg_split
         done(how(s.take(), s.path, tmp, s.tokenizer, thr, opts.opset))
+    if "sam" in plan and "detector" not in plan and "owl" not in plan:
+        # a SAM alone: clicks and boxes (goi select --click/--box), no text
+        enc_spec, dec_spec, sam_checks = _export_sam(plan["sam"], tmp, opts)
+        done({"sam": {"sam_encoder": enc_spec, "sam_decoder": dec_spec},
+              "export_checks": sam_checks})  # fmt: skip
     if "detector" in plan or "owl" in plan:
         from stages.models.export.grounding_dino import export_detector
         from stages.models.export.owlv2 import export_owlv2
-        from stages.models.export.sam import export_sam
 
         d, s = plan.get("detector") or plan["owl"], plan["sam"]
         assert d.tokenizer is not None
@@ -307,19 +312,7 @@ def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report:
             canvas = (opts.detector_height, opts.detector_width)
             det, det_check = export_detector(d.take(), d.path, tmp, d.tokenizer, canvas, opts.opset)
             done({"export_checks": {"detector.onnx": det_check}})
-        if s.kind == "sam-onnx":
-            from stages.models.export.sam_onnx import import_sam_onnx
-
-            enc_spec, dec_spec = import_sam_onnx(s.path, tmp)
-            sam_checks: dict = {}
-        elif s.kind == "sam2":
-            from stages.models.export.sam2 import export_sam2
-
-            enc_spec, dec_spec, sam_checks = export_sam2(s.take(), s.path, tmp, opts.opset)
-        else:
-            enc_spec, dec_spec, sam_checks = export_sam(
-                s.take(), s.path, tmp, opts.sam_size, opts.opset
-            )
+        enc_spec, dec_spec, sam_checks = _export_sam(s, tmp, opts)
         common = {
             "sam_encoder": enc_spec,
             "sam_decoder": dec_spec,
@@ -333,6 +326,22 @@ def _export(plan: dict[str, Source], tmp: Path, opts: ModelExportParams, report:
             section = {"grounded": {"detector": det, **common}}
         done({**section, "export_checks": sam_checks})
     return manifest
+
+
+def _export_sam(s: Source, tmp: Path, opts: ModelExportParams) -> tuple[dict, dict, dict]:
+    """The SAM source into the bundle: (sam_encoder, sam_decoder, export checks)."""
+    if s.kind == "sam-onnx":
+        from stages.models.export.sam_onnx import import_sam_onnx
+
+        enc_spec, dec_spec = import_sam_onnx(s.path, tmp)
+        return enc_spec, dec_spec, {}
+    if s.kind == "sam2":
+        from stages.models.export.sam2 import export_sam2
+
+        return export_sam2(s.take(), s.path, tmp, opts.opset)
+    from stages.models.export.sam import export_sam
+
+    return export_sam(s.take(), s.path, tmp, opts.sam_size, opts.opset)
 
 
 def export_model(
