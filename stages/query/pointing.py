@@ -30,9 +30,11 @@ bear's head), and a vote over the views keeps what they share: the part (test mI
               by more than `settle` (at most `grow_rounds` rounds): once SAM outlines the
               same object again, a larger box adds nothing.
 
-Minus clicks: each is answered as a part, and taken out of the answer. Every SAM prompt of a
-plus click or box also gets the minus clicks it sees as points labelled "not here", so SAM
-leaves that region out from the start. Text and points: `goi select --prompt T --click ...`
+Minus clicks: each is answered like a plus click, and what the answer holds of it is taken
+out (the top of a TV stand that "sofa" took in: the stand, of which the answer held its top).
+Every SAM prompt of a plus click or box also gets the minus clicks it sees as points labelled
+"not here", so SAM leaves that region out from the start, and a minus click's the plus
+clicks. Text and points: `goi select --prompt T --click ...`
 answers T as usual, then adds the plus answers and takes out the minus ones.
 """
 
@@ -109,6 +111,10 @@ class PointParams:
     """Training views SAM is asked in for each click or box: those that see it, chosen from
     different sides (each costs a SAM decoder run per round, and an image encoding when the
     view is not indexed yet)."""
+    new_views: Annotated[int | None, Range(ge=1)] = None
+    """At most this many of the views asked may lack their image embedding (not indexed yet:
+    seconds each to compute); the others are views already indexed. Default: no limit (a
+    first click on a new scene costs an encoding per view)."""
     grow_rounds: Annotated[int, Range(ge=1, le=10)] = 1
     """With --granularity object: at most this many rounds of asking SAM with the answer's
     box grown (then one with boxes that fit the answer)."""
@@ -190,6 +196,10 @@ class SamImages(Protocol):
 
     def embedding(self, cam: Camera) -> dict[str, np.ndarray]: ...
 
+    def held(self) -> set[str]:
+        """The views whose embedding costs nothing more (kept, or indexed)."""
+        ...
+
 
 class PhotoEmbeddings:
     """SAM's image side of the scene's photos, computed when first asked and kept in memory."""
@@ -205,6 +215,9 @@ class PhotoEmbeddings:
             self.report.log(f"encoded view {cam.name} ({time.perf_counter() - t:.1f} s)")
         return self.kept[cam.name]
 
+    def held(self) -> set[str]:
+        return set(self.kept)
+
 
 class IndexedEmbeddings:
     """SAM's image side from a RES index of the bundle (`GrowingIndex`): a view it lacks is
@@ -217,6 +230,9 @@ class IndexedEmbeddings:
         if cam.name not in self.index.views:
             self.index.add(cam)
         return self.sam.from_side(self.index.image_side(cam.name))
+
+    def held(self) -> set[str]:
+        return set(self.index.views)
 
 
 def sam_of(bundle: Bundle) -> Sam:
@@ -289,13 +305,6 @@ def click_point(rast: Rasterizer, cam: Camera, click: Click, option: str = "--cl
     return pixel_ray_point(cam, u, v, float(p.depth[0]))
 
 
-def _apart(cams: list[Camera], first: Camera | None, k: int) -> list[Camera]:
-    """Up to k of `cams` seen from different sides: camera-pose farthest-point order, from
-    `first` when it is among them."""
-    held = [first.name] if first is not None and any(c.name == first.name for c in cams) else []
-    return index_order(cams, held)[:k]
-
-
 class Pointer:
     """Answers clicks and boxes on one scene (see the module doc). `cams` resolves a view name
     (the scene's cameras, and those of a camera file)."""
@@ -338,7 +347,8 @@ class Pointer:
         check: Callable[[], None] = lambda: None,
     ) -> PointAnswer:
         """The clicks' and boxes' answer: `base` (a text answer, or nothing) with every plus
-        click's and box's answer added and every minus click's part taken out."""
+        click's and box's answer added and every minus click's taken out (at the granularity
+        asked: what is taken out is what the selection holds of it)."""
         p = self.p
         if not clicks and not boxes:
             raise GoiError("give at least one --click or --box")
@@ -364,11 +374,14 @@ class Pointer:
         todo += [(b, cam, True) for b, cam in zip(boxes, box_cams, strict=True)]
         todo += [(c, cam, False) for c, cam in zip(clicks, click_cams, strict=True)
                  if not c.positive]  # fmt: skip
+        plus_points = [x for c, x in zip(clicks, points, strict=True) if c.positive]
+        runs = self.decoder_runs
         for what, cam, plus in todo:
             check()
-            seed = self._seed(what, cam, minus if plus else [])
-            got, rec = self._grow(seed, minus if plus else [], check,
-                                  p.granularity if plus else "part")  # fmt: skip
+            # each answer is told where the other sign's clicks are: SAM leaves them out
+            other = minus if plus else plus_points
+            seed = self._seed(what, cam, other)
+            got, rec = self._grow(seed, other, check, p.granularity)
             if plus:
                 selected |= got
                 record["answers"].append({**rec, "sign": "+", "gaussians": int(got.sum())})
@@ -378,7 +391,7 @@ class Pointer:
                 record["answers"].append({**rec, "sign": "-", "gaussians": int(got.sum()),
                                           "taken_out": taken})  # fmt: skip
         record["seconds"] = round(time.perf_counter() - t0, 3)
-        record["decoder_runs"] = self.decoder_runs
+        record["decoder_runs"] = self.decoder_runs - runs
         return PointAnswer(selected, record)
 
     # -- seeds ----------------------------------------------------------------------------
@@ -408,11 +421,11 @@ class Pointer:
                 "outside every one of them); SAM runs on the training views' photos"
             )
         clicked = self.scene.by_name.get(cam.name)
-        views = _apart(seen, clicked if clicked == cam else None, self.p.point_views)
+        views = self._choose(seen, [cam] if clicked is cam else [])
         pos = {c.name: project_points(c, X[None])[0] for c in views}
-        if clicked == cam and cam.name in pos:
+        if clicked is cam and cam.name in pos:
             pos[cam.name] = np.array([[click.u, click.v]])  # its own view: the pixel clicked
-        own_view = (cam.name,) if clicked == cam else ()
+        own_view = (cam.name,) if clicked is cam else ()
         return Seed(f"click {click.text()}", None, views, pos, outline, own_view)
 
     def _lifted(self, cam: Camera, mask: np.ndarray) -> np.ndarray:
@@ -443,7 +456,7 @@ class Pointer:
         seed = self._lifted(cam, logits > 0)
         if not seed.any():
             raise GoiError(f"--box {box.text()}: SAM outlines nothing of the scene in that box")
-        first = [c for c in self.train if c.name == cam.name and self.scene.by_name[c.name] == cam]
+        first = [c for c in self.train if c is cam]
         views = self._seeing(seed, first)
         if not views:
             raise GoiError(
@@ -471,14 +484,32 @@ class Pointer:
         near = NEAR_RATIO * min(depth)
         names = {c.name for c in first}
         shown = [c for c, z in zip(shown, depth, strict=True) if z <= near or c.name in names]
-        order = index_order([*first, *[c for c in shown if c.name not in names]],
-                            [c.name for c in first])  # fmt: skip
-        return order[: max(len(first), self.p.point_views)]
+        return self._choose([*first, *[c for c in shown if c.name not in names]], first)
+
+    def _choose(self, cams: list[Camera], first: list[Camera]) -> list[Camera]:
+        """Up to `point_views` of `cams` seen from different sides (camera-pose farthest-point
+        order, from `first`), of which at most `new_views` are views whose image embedding is
+        yet to be computed."""
+        held = self.images.held()
+        limit = self.p.new_views
+        out: list[Camera] = []
+        new = 0
+        names = {c.name for c in cams}
+        firsts = {f.name for f in first if f.name in names}
+        for c in index_order(cams, list(firsts)):
+            if len(out) >= self.p.point_views:
+                break
+            if c.name not in held:
+                if limit is not None and new >= limit and c.name not in firsts:
+                    continue
+                new += 1
+            out.append(c)
+        return out
 
     def _own_embedding(self, cam: Camera) -> dict[str, np.ndarray]:
         """The image embedding of the view a click or box was made in: the photo's for a
         training view, else goi's render of that camera (a camera file's view has no photo)."""
-        if any(c.name == cam.name for c in self.train) and self.scene.by_name.get(cam.name) == cam:
+        if any(c is cam for c in self.train):
             return self.images.embedding(cam)
         rgb = self.rast.render_rgb(cam).image
         return self.sam.embed((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8))

@@ -1,0 +1,150 @@
+"""The 3D answer prompts SAM back (`--refine sam`): every lifted view re-segmented from the
+lifted answer, and those masks voted beside the RES masks.
+
+The lifted mode can only weigh the masks it is given, and a box detector repeats its mistakes
+view after view (it boxes the support a prompt names; SAM, given that box, misses the same part
+of a large object in every view). But the lifted answer is 3D: projected into a view it says
+where the object is and where it is not, consistently across views, which is the question SAM
+answers best (cross-view self-prompting, as in SA3D). Per round and lifted view:
+
+    box        the box around the answer's projection there (its main parts: a few stray
+               Gaussians do not stretch it), with a small margin;
+    points     the projection's most interior pixels (deep inside: SAM segments the whole of
+               what they are in);
+    not here   a point deep inside what the vote rejected outright (S1 < 0.1 E, seen by the
+               masks) that shows inside the box and outside the answer: a support the vote kept
+               out, which SAM, given only the box, would outline with the object.
+
+SAM's masks are lifted and voted together with the RES masks (the RES masks stay the first
+evidence; a view's SAM mask is one more view's mask, named VIEW+sam, and the vote's confidence
+rounds weigh each by how well it agrees with the core), with the route's own fusion (the field,
+the OSH, the guard). Rounds repeat while the answer changes by more than `settle` of its size,
+at most `refine_rounds`. A view that shows nothing of the answer is not asked (its RES mask
+already says what it says).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Annotated
+
+import numpy as np
+
+from stages.core.params import Choice, Range
+from stages.core.report import SILENT, Report
+from stages.models.grounded import Sam
+from stages.query.lift_answer import LiftedAnswer, view_evidence
+from stages.query.lift_math import ViewEvidence
+from stages.query.point_math import box_pixels, expand_box, interior_points, main_parts, mask_box
+from stages.query.pointing import BOX_KEEP, INTERIOR_POINTS, TIGHT, SamImages
+from stages.render.lift import selection_mask
+from stages.render.rasterizer import Rasterizer
+from stages.scene.cameras import Camera
+
+REFINERS = ("none", "sam")
+#: What the vote rejected outright: a Gaussian the masks see whose share is below this.
+REJECTED_SHARE = 0.1
+#: A "not here" point is given when the rejected part inside the box covers at least this
+#: share of the box's pixels (a sliver of background at the box's edge is no support).
+REJECTED_PIXELS = 0.05
+#: The suffix of a SAM mask's view name in the evidence (and the selection's record).
+SAM_VIEW = "+sam"
+
+
+@dataclass
+class RepromptParams:
+    """The lifted answer prompting SAM back (stages.query.reprompt)."""
+
+    refine: Annotated[str, Choice(REFINERS)] = "none"
+    """sam: re-segment every lifted view with SAM prompted from the lifted answer (the box of
+    its projection, points deep inside it, a 'not here' point on what the vote rejected in that
+    box), and vote SAM's masks beside the RES masks, again while the answer changes. Needs a
+    --bundle with a SAM (beside --res-masks, or the RES bundle's own)."""
+    refine_rounds: Annotated[int, Range(ge=1, le=10)] = 2
+    """With --refine sam: at most this many rounds of re-prompting."""
+    refine_settle: Annotated[float, Range(ge=0, le=1)] = 0.01
+    """With --refine sam: the rounds stop once one changes fewer Gaussians than this share of
+    the answer."""
+
+
+def sam_prompts(
+    rast: Rasterizer, cam: Camera, selected: np.ndarray, rejected: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(points [P, 2], labels [P], box [4]) for SAM at `cam` from a 3D answer (see the module
+    doc); None when the view shows nothing of it."""
+    proj, bins = rast.prepare(cam)
+    shown = selection_mask(proj, bins, selected, cam.width, cam.height)
+    main = main_parts(shown, BOX_KEEP)
+    tight = mask_box(main)
+    if tight is None:
+        return None
+    box = expand_box(tight, TIGHT, cam.width, cam.height, 0.0)
+    pos = interior_points(main, INTERIOR_POINTS)
+    inside = box_pixels(box, cam.width, cam.height)
+    out = selection_mask(proj, bins, rejected, cam.width, cam.height) & inside & ~shown
+    neg = np.zeros((0, 2), np.int64)
+    if out.sum() >= REJECTED_PIXELS * inside.sum():
+        neg = interior_points(out, 1)
+    points = np.concatenate([pos, neg]).astype(np.float64)
+    labels = np.r_[np.ones(len(pos)), np.zeros(len(neg))]
+    return points, labels, box
+
+
+def rejected_of(answer: LiftedAnswer) -> np.ndarray:
+    """[G] bool: what the vote rejected outright (seen by the masks, a share below
+    REJECTED_SHARE)."""
+    lf = answer.lifted
+    E = lf.S1 + lf.S0
+    return lf.evident & ~lf.selected & (lf.S1 < REJECTED_SHARE * E)
+
+
+def reprompt(
+    answer: LiftedAnswer,
+    rast: Rasterizer,
+    sam: Sam,
+    images: SamImages,
+    cams: dict[str, Camera],
+    revote: Callable[[list[ViewEvidence]], LiftedAnswer],
+    p: RepromptParams,
+    check: Callable[[], None] = lambda: None,
+    report: Report = SILENT,
+) -> tuple[LiftedAnswer, dict]:
+    """The answer refined by SAM (see the module doc) and the record of its rounds. `revote`
+    votes a list of evidence with the route's fusion (the RES masks' evidence is the answer's
+    own, first); `cams` the training views by name."""
+    res_evidence = [e for e in answer.evidence if not e.view.endswith(SAM_VIEW)]
+    views = [cams[e.view] for e in res_evidence if e.view in cams]
+    rounds: list[dict] = []
+    t0 = time.perf_counter()
+    for _ in range(p.refine_rounds):
+        selected, rejected = answer.selected, rejected_of(answer)
+        evidence: list[ViewEvidence] = []
+        negatives = 0
+        for cam in report.progress(views, "refine", show=lambda c: c.name if c else None):
+            check()
+            prompt = sam_prompts(rast, cam, selected, rejected)
+            if prompt is None:
+                continue
+            points, labels, box = prompt
+            if not sam.takes_points:  # boxes only: the box alone
+                points, labels = points[:0], labels[:0]
+            negatives += int((labels == 0).sum())
+            logits = sam.prompt_logits(images.embedding(cam), (cam.height, cam.width),
+                                       points if len(points) else None,
+                                       labels if len(points) else None, box)  # fmt: skip
+            ev = view_evidence(rast, cam, logits > 0)
+            evidence.append(ViewEvidence(cam.name + SAM_VIEW, ev.ids, ev.s1, ev.s0, ev.empty))
+        if not evidence:
+            break
+        new = revote([*res_evidence, *evidence])
+        added = int((new.selected & ~selected).sum())
+        removed = int((selected & ~new.selected).sum())
+        rounds.append({"views": len(evidence), "added": added, "removed": removed,
+                       "not_here": negatives, "gaussians": int(new.selected.sum())})  # fmt: skip
+        answer = new
+        if added + removed < p.refine_settle * max(1, int(selected.sum())):
+            break
+    record = {"by": "sam", "rounds": rounds, "seconds": round(time.perf_counter() - t0, 3)}
+    return answer, record
