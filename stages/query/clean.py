@@ -13,10 +13,10 @@ of the demo's lifted answers lay more than 3 % of the scene's extent from the ta
   2. body     the piece the masks claim most (the lifted S1 summed over it; the largest
               piece when nothing is claimed), and every piece claimed at least STRONG_CLAIM
               of it: evidence strong in its own right, a second object of the prompt ("the
-              armchairs": the second chair carries 0.26-0.30 of the first's claim, a speck or a
-              confuser 0.03 at most).
+              armchairs": the second chair carries 0.26-0.30 of the first's claim on the dev
+              room, a speck or a confuser 0.031 at most).
   3. near     a weaker piece within NEAR x the extent of the body is kept (a part the link
-              radius cut off: an armchair's cushion, a plant's leaves); one pass, so a chain
+              radius cut off: 216-242 Gaussians of the white armchair); one pass, so a chain
               of specks cannot creep outwards from the body (chained, "couch" kept 2.2 % of
               strays on the dev room instead of 0.5 %).
   4. the rest is dropped, and the record says how many Gaussians and pieces, and why.
@@ -34,7 +34,7 @@ import numba
 import numpy as np
 
 # ------------------------------------------------------------------------------------------
-# Geometry: a voxel hash over points (cells of side r), and the three questions asked of it.
+# Geometry: a voxel hash over points (cells of side r), and the two questions asked of it.
 # Two points within r lie in the same or adjacent cells, so each point looks at 27 cells.
 # ------------------------------------------------------------------------------------------
 
@@ -187,15 +187,16 @@ def near_any(queries: np.ndarray, points: np.ndarray, r: float) -> np.ndarray:
 #: components of that graph are the pieces of the answer (7 cm on the dev room).
 LINK = 0.01
 #: A weak piece within this share of the extent of the body is kept: a part of the object
-#: the link radius cut off (the white armchair's 216-242 Gaussians 1-2 % from its body, a
-#: plant's leaves). `goi eval`'s stray share counts what lies beyond 3 %.
+#: the link radius cut off (216-242 Gaussians of the white armchair lie 1-2 % from the rest of
+#: it). `goi eval`'s stray share counts what lies beyond 3 %.
 NEAR = 0.03
 #: A piece far from the body stays when the masks' claim on it (its S1 summed) is at least
 #: this share of the claim on the piece they claim most: a second object of the prompt.
 #: On the dev room's four RES sets, with and without the field, the second armchair under
 #: "armchairs" carries 0.26-0.30 of the first's claim; of the pieces dropped, the most claimed
 #: is the white armchair that correlated SAM masks take in under "the dark green armchair"
-#: (0.031, 2,209 Gaussians), the rest (specks, a confuser a few views take in) 0.0032 at most.
+#: (0.031, 2,209 Gaussians), the rest (specks, a confuser a few views take in) 0.0032 at most;
+#: on the demo scene 0.016 at most.
 STRONG_CLAIM = 0.1
 #: The extent is the diagonal of the box holding this central share of the Gaussians' centres
 #: on each axis, so that a few floaters far out in a real capture do not set the radii.
