@@ -1,4 +1,4 @@
-"""The paper's 2D metrics (IoU, mPA, mP per image) and our 3D IoU over Gaussians.
+"""The paper's 2D metrics (IoU, mPA, mP per image), our 3D IoU over Gaussians and the stray share.
 
 Per image, over the two classes foreground and background:
 - IoU is the foreground's; an image where neither prediction nor ground truth has foreground
