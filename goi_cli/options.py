@@ -80,7 +80,10 @@ def dataclass_options(cls: type, skip: tuple[str, ...] = ()) -> Callable:
             if rng is not None:
                 help_ += f" Range: {rng.describe()}."
             choice = field_choice(cls, f.name)
-            if tp is bool:
+            if tp is bool and default is True:  # on by default: --x/--no-x
+                off = "--no-" + f.name.replace("_", "-")
+                fn = click.option(f"{flag}/{off}", f.name, default=True, help=help_)(fn)
+            elif tp is bool:
                 fn = click.option(flag, f.name, is_flag=True, default=default, help=help_)(fn)
             elif tp is Path:
                 fn = click.option(

@@ -19,7 +19,7 @@ from stages.core.errors import GoiError
 from stages.core.files import check_out_dir, make_dir
 from stages.core.params import AT_LEAST_1, check_params
 from stages.core.report import SILENT, Report
-from stages.evaluation.metrics import image_scores, mean_scores
+from stages.evaluation.metrics import image_scores, mean_scores, stray_share
 from stages.evaluation.report import esc, rel, res_row, write_page
 from stages.evaluation.room import Prompt, load_prompts
 from stages.models.bundle import load_bundle
@@ -28,6 +28,7 @@ from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryResult, QueryRun, run_query
 from stages.query.prompts import safe_name, view_file_name
 from stages.query.res import checked_index
+from stages.query.selection import load_selection
 from stages.scene.cameras import Camera
 from stages.scene.images import read_mask
 from stages.scene.scene import Scene, load_scene
@@ -81,6 +82,8 @@ class DemoAnswer:
     iou: float | None  # mean test-view IoU against the scene's ground truth
     lifted: QueryResult | None = None  # the same prompt answered with --lift
     lifted_iou: float | None = None
+    #: each answer's stray share (stages.evaluation.metrics.stray_share): the paper's, lifted
+    strays: tuple[float, float | None] | None = None
 
 
 @dataclass
@@ -153,6 +156,7 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
         report,
     )
     renderer = SemanticRenderer(scene.gaussians, load_field(field_path))
+    ids = np.load(scene_dir / "gaussian_ids.npy", allow_pickle=False)  # [G] instance ids
     answers = []
     for prompt in prompts:
         report.log(f"demo: query {prompt.text!r}")
@@ -184,7 +188,12 @@ def run_demo(p: DemoParams, run: DemoRun, report: Report = SILENT) -> DemoResult
                 pred = read_mask(r.directory / "masks" / f"{view_file_name(v)}.png")
                 scores.append(image_scores(pred, gt))
             ious.append(mean_scores(scores).iou if scores else None)
-        answers.append(DemoAnswer(prompt, both[0], ious[0], both[1], ious[1]))
+        target = np.isin(ids, prompt.targets)
+        paper, lifted = (
+            stray_share(load_selection(r.selection).selected, target, scene.gaussians.means)
+            for r in both
+        )
+        answers.append(DemoAnswer(prompt, both[0], ious[0], both[1], ious[1], (paper, lifted)))
     page = out / "index.html"
     _index(page, answers, scene.views("test"), _res_masks(answers, renderer, scene))
     return DemoResult(page, field_path, answers)
@@ -227,7 +236,9 @@ def _index(
         "goi's mask on its own rendering. IoU is against the scene's ground truth. Two answers "
         "per prompt: the paper's (the OSH fitted on one RES view, masks decoded per pixel) and "
         "goi's lifted mode (every RES mask of the prompt lifted onto the Gaussians and fused "
-        "with the field; masks rendered from that 3D selection)."
+        "with the field; masks rendered from that 3D selection). Strays: the share of the "
+        "answer's Gaussians farther than 3 % of the scene's extent from every Gaussian of the "
+        "target, specks an exported PLY would show floating in the room."
         + (
             " RES: the masks the bundle's RES model made on goi's rendering, which the "
             "hyperplane was fitted on."
@@ -236,15 +247,16 @@ def _index(
         )
         + "</p>"
         "<table><tr><th class='l'>prompt</th><th class='l'>answer</th><th>IoU</th>"
-        "<th>Gaussians</th><th class='l'>PLY</th></tr>"
+        "<th>Gaussians</th><th>strays</th><th class='l'>PLY</th></tr>"
     ]
     for a in answers:
-        for label, r, iou_ in _both(a):
+        for label, r, iou_, strays in _both(a):
             ply = f"<a href='{rel(r.ply, page)}'>{esc(r.ply.name)}</a>" if r.ply else "-"
             iou = "-" if iou_ is None else f"{iou_:.3f}"
+            stray = "-" if strays is None else f"{100 * strays:.1f} %"
             body.append(
                 f"<tr><td class='l'>{esc(r.prompt)}</td><td class='l'>{label}</td><td>{iou}</td>"
-                f"<td>{r.n_selected}</td><td class='l'>{ply}</td></tr>"
+                f"<td>{r.n_selected}</td><td>{stray}</td><td class='l'>{ply}</td></tr>"
             )
     body.append("</table>")
     for a in answers:
@@ -253,7 +265,7 @@ def _index(
             files = page.with_name(page.stem + "_files")
             make_dir(files, "--out")
             body.append(res_row(res[a.prompt.id], files, page, safe_name(a.prompt.id)))
-        for label, r, _ in _both(a):
+        for label, r, _, _ in _both(a):
             body.append(f"<div><b>{label}</b><br>")
             for cam in views:
                 img = r.directory / "masks" / f"{view_file_name(cam.name)}.overlay.png"
@@ -266,10 +278,12 @@ def _index(
     write_page(page, "goi demo", "".join(body))
 
 
-def _both(a: DemoAnswer) -> list[tuple[str, QueryResult, float | None]]:
-    out = [("paper (one view)", a.result, a.iou)]
+def _both(a: DemoAnswer) -> list[tuple[str, QueryResult, float | None, float | None]]:
+    """(label, result, IoU, stray share) of the paper's answer and the lifted one."""
+    paper, lifted = a.strays if a.strays is not None else (None, None)
+    out = [("paper (one view)", a.result, a.iou, paper)]
     if a.lifted is not None:
-        out.append(("lifted", a.lifted, a.lifted_iou))
+        out.append(("lifted", a.lifted, a.lifted_iou, lifted))
     return out
 
 
@@ -294,10 +308,11 @@ def _shown(path: Path) -> str:
 def summary_lines(res: DemoResult) -> list[str]:
     lines = []
     for a in res.answers:
-        for label, r, iou_ in _both(a):
+        for label, r, iou_, strays in _both(a):
             iou = "  -  " if iou_ is None else f"{iou_:.3f}"
+            stray = "  -  " if strays is None else f"{100 * strays:4.1f} %"
             lines.append(
                 f"  {r.prompt[:32]:32s} {label:16s} IoU {iou}  {r.n_selected:6d} Gaussians  "
-                f"{r.ply or ''}"
+                f"strays {stray}  {r.ply or ''}"
             )
     return lines

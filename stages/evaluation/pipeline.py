@@ -35,7 +35,7 @@ from stages.core.files import check_output_file, check_output_name, make_dir, re
 from stages.core.params import AT_LEAST_1, COSINE, SEED, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.core.staging import staged_outputs
-from stages.evaluation.metrics import Scores, image_scores, iou_3d, mean_scores
+from stages.evaluation.metrics import Scores, image_scores, iou_3d, mean_scores, stray_share
 from stages.evaluation.report import eval_page, page_files_dir
 from stages.evaluation.room import Prompt, Room, load_room
 from stages.evaluation.variants import (
@@ -87,6 +87,10 @@ class EvalParams:
     min_evidence: Annotated[float, Range(ge=0)] = LiftParams.min_evidence
     """Variant lifted: Gaussians with less lifted blend weight (pixels' worth) than this take
     the semantic decision (codebook entry / OSH)."""
+    clean: bool = LiftParams.clean
+    """Variants lifted and lifted_fieldless: drop the Gaussians far from the answer's body
+    unless their own evidence is strong (goi query's --clean); --no-clean scores the vote's
+    answer as it is."""
 
 
 @dataclass
@@ -447,8 +451,10 @@ def _score(
     gts: dict[str, np.ndarray],
     target: np.ndarray | None,
     weight: np.ndarray | None,
+    means: np.ndarray,
 ) -> dict:
-    """The report entry of one prompt and variant (without text, timing and fit record)."""
+    """The report entry of one prompt and variant (without text, timing and fit record);
+    `means` [G, 3]: the Gaussians' centres (the stray share's distances)."""
     scores = {v: image_scores(pred.masks[v], gt) for v, gt in gts.items()}
     entry: dict = {
         "n_test_views": len(gts),
@@ -459,6 +465,7 @@ def _score(
     if target is not None:
         entry["iou_3d"] = iou_3d(pred.selected, target)
         entry["iou_3d_visible"] = iou_3d(pred.selected, target, weight)
+        entry["stray_share"] = stray_share(pred.selected, target, means)
     return entry
 
 
@@ -502,6 +509,9 @@ def _summarise(variant_report: dict, with_3d: bool) -> None:
     if with_3d:
         variant_report["miou_3d"] = float(np.mean([e["iou_3d"] for e in entries]))
         variant_report["miou_3d_visible"] = float(np.mean([e["iou_3d_visible"] for e in entries]))
+        strays = [e["stray_share"] for e in entries]
+        variant_report["stray_share"] = float(np.mean(strays))
+        variant_report["stray_share_max"] = float(np.max(strays))
     variant_report["prompts"] = variant_report.pop("prompts")  # keep the means first
 
 
@@ -675,7 +685,7 @@ def run_eval(
     train = scene.views("train")
     hp = HyperplaneParams(threshold=p.threshold)
     planes = HyperplaneRun(work / "hyperplanes.h5", refit=True)
-    lp = LiftParams(lift=True, res_views=p.res_views, min_evidence=p.min_evidence)
+    lp = LiftParams(lift=True, res_views=p.res_views, min_evidence=p.min_evidence, clean=p.clean)
     doc: dict = {
         "schema": "goi.eval",
         "schema_version": current_version("goi.eval"),
@@ -688,6 +698,9 @@ def run_eval(
             "miou_3d": "IoU of selected vs target Gaussians, each Gaussian counted once",
             "miou_3d_visible": "the same, each Gaussian weighted by its blending weight summed "
             "over the training views (hidden Gaussians count for nothing)",
+            "stray_share": "share of the selected Gaussians farther than 3 % of the scene's "
+            "extent (the Gaussians' bounding box diagonal) from every target Gaussian; the "
+            "variant's stray_share is the mean over prompts, stray_share_max the largest",
         },
         "variants": {v: {"prompts": {}} for v in variants},
         **(
@@ -720,7 +733,7 @@ def run_eval(
             entry = {
                 "text": prompt.text,
                 "kind": prompt.kind,
-                **_score(pred, gts, room.targets(prompt), weight),
+                **_score(pred, gts, room.targets(prompt), weight, scene.gaussians.means),
                 "seconds": round(time.perf_counter() - t0, 3),
                 **pred.info,
             }

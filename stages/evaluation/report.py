@@ -130,6 +130,26 @@ def floor_table(variants: dict) -> str:
     return "".join(rows)
 
 
+def stray_table(variants: dict, prompts: list) -> str:
+    """Per prompt and variant, the share of the selection farther than 3 % of the scene's
+    extent from every target Gaussian: specks an exported or isolated answer shows floating
+    in the room, which the test views' IoU hardly sees."""
+    rows = [
+        "</table><h2>Per prompt (stray share)</h2><p class='key'>The share of the selected "
+        "Gaussians farther than 3 % of the scene's extent (the Gaussians' bounding box "
+        "diagonal) from every target Gaussian.</p><table><tr><th class='l'>id</th>"
+        "<th class='l'>prompt</th>" + "".join(f"<th>{esc(v)}</th>" for v in variants) + "</tr>"
+    ]
+    for p in prompts:
+        cells = "".join(
+            f"<td>{fmt(r['prompts'][p.id].get('stray_share'))}</td>" for r in variants.values()
+        )
+        rows.append(
+            f"<tr><td class='l'>{esc(p.id)}</td><td class='l'>{esc(p.text)}</td>{cells}</tr>"
+        )
+    return "".join(rows)
+
+
 def eval_page(
     path: Path,
     report: dict,
@@ -149,14 +169,16 @@ def eval_page(
     body = [
         f"<p class='key'>room {esc(report['room'])} · fixed threshold {fmt(report['threshold'])}"
         f" · goi {esc(report['goi_version'])}</p><h2>Metrics</h2><table><tr><th class='l'>variant"
-        "</th><th>mIoU</th><th>mPA</th><th>mP</th><th>mIoU 3D</th><th>mIoU 3D (visible)</th></tr>"
+        "</th><th>mIoU</th><th>mPA</th><th>mP</th><th>mIoU 3D</th><th>mIoU 3D (visible)</th>"
+        "<th>stray share (mean)</th><th>stray share (max)</th></tr>"
     ]
     for v in variants:
         r = report["variants"][v]
         body.append(
             f"<tr><td class='l'>{esc(v)}</td><td>{fmt(r['miou'])}</td><td>{fmt(r['mpa'])}</td>"
             f"<td>{fmt(r['mp'])}</td><td>{fmt(r.get('miou_3d'))}</td>"
-            f"<td>{fmt(r.get('miou_3d_visible'))}</td></tr>"
+            f"<td>{fmt(r.get('miou_3d_visible'))}</td><td>{fmt(r.get('stray_share'))}</td>"
+            f"<td>{fmt(r.get('stray_share_max'))}</td></tr>"
         )
     body.append(floor_table(report["variants"]))
     exact = report.get("exact_answer")
@@ -194,6 +216,8 @@ def eval_page(
         body.append(
             f"<tr><td class='l'>{esc(p.id)}</td><td class='l'>{esc(p.text)}</td>{cells}</tr>"
         )
+    if any("stray_share" in report["variants"][v] for v in variants):
+        body.append(stray_table(report["variants"], prompts))
     body.append("</table><h2>Timings (s)</h2><table>")
     for k, t in report["timings_s"].items():
         body.append(f"<tr><td class='l'>{esc(k)}</td><td>{fmt(float(t))}</td></tr>")

@@ -175,6 +175,7 @@ def predict_lifted(
         "view_confidence": {d["view"]: d["confidence"] for d in rec["per_view"]},
         "n_evident": rec["n_evident"],
         "fusion": rec["fusion"],
+        "clean": rec["clean"],
     }
     fallback = None
     if ans.plane is not None and isinstance(renderer, SemanticRenderer):

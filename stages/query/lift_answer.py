@@ -19,6 +19,11 @@ each is indexed as it is chosen, so the index grows by the views that serve the 
 asked. With `RefineParams.progressive` the answer is handed to `on_answer` once the first
 views are lifted and again after every further batch, so a caller rewrites it as it refines.
 
+Every answer lift_prompt gives (not the previews `partial` gets) is cleaned unless
+`LiftParams.clean` is off: its pieces far from its body are dropped unless the masks claim
+them strongly in their own right (`stages.query.clean`), and `LiftedAnswer.cleaned` records
+how many went and by which rule.
+
 Without a semantic field (`lift_prompt` given a bare Rasterizer: the field-free mode, the
 training-free route of FlashSplat and Seed2GS) the vote alone decides: a Gaussian is in when its
 own evidence says so, and one with less than `min_evidence` (which no view's evidence reaches)
@@ -28,6 +33,7 @@ fit-field is needed, and no text embedding: the RES masks carry the prompt.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -38,6 +44,7 @@ import numpy as np
 from stages.core.errors import GoiError, warn
 from stages.core.params import AT_LEAST_1, Range, check_params
 from stages.core.report import SILENT, Report
+from stages.query.clean import clean_selection
 from stages.query.lift_math import (
     DEFAULT_MODEL_VIEWS,
     Lifted,
@@ -107,6 +114,9 @@ class LiftedAnswer:
     evidence: list[ViewEvidence]
     chosen_by: str  # "all mask files", "K of the mask files", "coverage (RES model)"
     refines_to: int | None = None  # on an index that grows: the views the answer refines to
+    #: what cleaning did (stages.query.clean.clean_selection's record); None: not cleaned
+    #: (--no-clean, or a preview while views are lifted)
+    cleaned: dict | None = None
 
     @property
     def selected(self) -> np.ndarray:
@@ -132,6 +142,7 @@ class LiftedAnswer:
             "n_selected_by_masks": int((lf.selected & lf.evident).sum()),
             "n_selected_by_semantics": int((lf.selected & ~lf.evident).sum()),
             "fusion": lf.info,
+            "clean": self.cleaned,
             **(
                 {
                     "refinement": {
@@ -276,7 +287,7 @@ def lift_prompt(
                 rast, field, entry, source, train, pool, prompt, text, hp, lp, n, refine,
                 vis_of, report, partial, on_answer,
             )  # fmt: skip
-            return _found_nothing(grown, source, prompt)
+            return _found_nothing(_cleaned(grown, lp, rast.means), source, prompt)
         # the index holds enough views: answered from them as from any index
     if source.every_view and lp.res_views is None:
         evidence: list[ViewEvidence] = []
@@ -288,7 +299,7 @@ def lift_prompt(
                 partial(make, len(evidence), len(pool))
         everything = "all mask files" if files else f"every indexed view ({source.source})"
         lifted_all = _answer(evidence, field, entry, prompt, text, hp, lp, everything)
-        return _found_nothing(lifted_all, source, prompt)
+        return _found_nothing(_cleaned(lifted_all, lp, rast.means), source, prompt)
     k = lp.res_views or (len(pool) if refine.all_views else DEFAULT_MODEL_VIEWS)
     if k > len(pool):
         warn(f"--res-views {k}: only {len(pool)} views have RES masks; lifting all of them")
@@ -312,7 +323,7 @@ def lift_prompt(
         if partial is not None:
             partial(functools.partial(_given, answer), step + 1, k)
     assert answer is not None  # k >= 1
-    return _found_nothing(answer, source, prompt)
+    return _found_nothing(_cleaned(answer, lp, rast.means), source, prompt)
 
 
 def _start(
@@ -369,7 +380,8 @@ def _lift_growing(
         due = first <= done < n and (done - first) % refine.refine_every == 0
         if on_answer is not None and due:
             assert answer is not None
-            on_answer(_found_nothing(answer, source, prompt, quiet=True), done, n)
+            final = _cleaned(answer, lp, rast.means)
+            on_answer(_found_nothing(final, source, prompt, quiet=True), done, n)
 
     vis = {c.name: visibility(c) for c in report.progress(train, "visibility", show=_name)}
     S = _start(field, entry, text, hp)
@@ -406,6 +418,16 @@ def _lift_growing(
 def _given(answer: LiftedAnswer | None) -> LiftedAnswer:
     assert answer is not None
     return answer
+
+
+def _cleaned(answer: LiftedAnswer, lp: LiftParams, means: np.ndarray) -> LiftedAnswer:
+    """The answer without its pieces far from its body (stages.query.clean), recording what
+    went, when `lp.clean`; a new answer, the one given is left as it is. means [G, 3]."""
+    if not lp.clean:
+        return answer
+    kept, record = clean_selection(means, answer.selected, answer.lifted.S1)
+    lifted = dataclasses.replace(answer.lifted, selected=kept)
+    return dataclasses.replace(answer, lifted=lifted, cleaned=record)
 
 
 def _found_nothing(

@@ -161,6 +161,11 @@ class LiftParams:
     stop early once the views' weights settle."""
     core_share: Annotated[float, FRACTION] = 0.75
     """With --lift: share of S1 that puts a Gaussian in the core the views are scored against."""
+    clean: bool = True
+    """With --lift: drop the pieces of the answer farther than 3 % of the scene's extent
+    from its body, unless the masks claim them strongly in their own right (a second object
+    of the prompt stays); the selection records how many Gaussians went and by which rule.
+    --no-clean keeps the vote's answer as it is."""
 
     def config(self) -> dict:
         return asdict(self)
@@ -172,9 +177,10 @@ class LiftParams:
         if not self.lift:
             defaults = LiftParams()
             for name in ("res_views", "min_evidence", "background_bias", "confidence_rounds",
-                         "core_share"):  # fmt: skip
+                         "core_share", "clean"):  # fmt: skip
                 if getattr(self, name) != getattr(defaults, name):
-                    option = "--" + name.replace("_", "-")
+                    no = "no-" if getattr(defaults, name) is True else ""  # --no-clean
+                    option = "--" + no + name.replace("_", "-")
                     raise GoiError(f"{option}: only with --lift (an option of the lifted mode)")
             return
         if hp is not None and hp.fit_on is not None:

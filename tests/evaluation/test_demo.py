@@ -30,6 +30,8 @@ def test_demo_finds_the_prompts_objects(tmp_path):
     for a in res.answers:
         r = a.result
         assert len(load_ply(r.ply).vertex) == r.n_selected > 0
+        assert a.strays is not None and all(0 <= x <= 1 for x in a.strays)
+    assert "<th>strays</th>" in page
     # the CLI runs it too, over the outputs of a previous run
     assert main(["demo", "--out", str(tmp_path), "--iterations", "20", "--prompts", "p08"]) == 0
     assert main(["demo", "--out", str(tmp_path), "--prompts", "p99"]) == 2

@@ -62,6 +62,13 @@ def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
         assert set(v["prompts"]) == {"p1", "p2"}
     assert r["variants"]["full"]["miou"] >= 0.7
     assert r["variants"]["full"]["miou_3d_visible"] >= 0.7
+    for v in r["variants"].values():  # goi.eval 1.7: the stray share per prompt and its mean
+        strays = [e["stray_share"] for e in v["prompts"].values()]
+        assert all(0 <= x <= 1 for x in strays) and v["stray_share_max"] == max(strays)
+        assert v["stray_share"] == pytest.approx(sum(strays) / len(strays))
+    assert r["lifted"]["params"]["clean"] is True
+    for e in r["variants"]["lifted"]["prompts"].values():
+        assert e["clean"]["rule"] == "far_piece"
     for stage in ("extract", "init_codebook", "fit_field_tfcc", "fit_field_direct"):
         assert r["timings_s"][stage] > 0
     page = (tmp_path / "r.html").read_text()
@@ -72,6 +79,7 @@ def test_eval_scores_all_variants_and_writes_the_report(tmp_path):
     exact = r["exact_answer"]
     assert set(exact["prompts"]) == {"p1", "p2"} and exact["miou"] >= 0.9
     assert "The exact 3D answer" in page and "<th>exact 3D answer</th>" in page
+    assert "Per prompt (stray share)" in page and "<th>stray share (mean)</th>" in page
     for v in r["variants"].values():  # each prompt read against its exact answer too
         w = v["against_exact"]["worst"]
         assert w["share"] == v["prompts"][w["id"]]["iou"] / exact["prompts"][w["id"]]["iou"]
@@ -105,7 +113,19 @@ def test_eval_field_free_needs_no_features(tmp_path):
     validate_json(r, "goi.eval", str(out))
     assert set(r["variants"]) == {"lifted_fieldless"}
     assert r["variants"]["lifted_fieldless"]["miou"] >= 0.7
+    assert 0 <= r["variants"]["lifted_fieldless"]["stray_share"] <= 1
     assert not any(k.startswith("fit_field") for k in r["timings_s"])
+    # --no-clean: the vote's answer as it is, recorded so
+    out2 = tmp_path / "r2.json"
+    argv2 = ["eval", str(room), "--res-masks", str(room / "res"), "--out", str(out2)]
+    assert main([*argv2, "--variants", "lifted_fieldless", "--no-clean"]) == 0
+    r2 = json.loads(out2.read_text())
+    assert r2["lifted"]["params"]["clean"] is False
+    assert all(e["clean"] is None for e in r2["variants"]["lifted_fieldless"]["prompts"].values())
+    assert all(
+        e["clean"]["rule"] == "far_piece"
+        for e in r["variants"]["lifted_fieldless"]["prompts"].values()
+    )
     assert not (tmp_path / "r.work" / "features.h5").exists()
 
 

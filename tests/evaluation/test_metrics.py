@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from stages.evaluation.metrics import image_scores, iou_3d, mean_scores
+from stages.evaluation.metrics import image_scores, iou_3d, mean_scores, stray_share
 
 
 def _m(rows):
@@ -74,3 +74,17 @@ def test_iou_3d_counts_and_weights():
     assert iou_3d(sel, tgt) == pytest.approx(1 / 3)
     assert iou_3d(sel, tgt, np.array([2.0, 1.0, 1.0, 5.0])) == pytest.approx(2 / 4)
     assert iou_3d(np.zeros(3, bool), np.zeros(3, bool)) == 1.0
+
+
+def test_stray_share_counts_the_selection_far_from_every_target_gaussian():
+    # the corners make the extent 10 (the bounding box diagonal): strays lie beyond 0.3
+    means = np.array(
+        [[0, 0, 0], [6, 8, 0], [1, 1, 0], [1.1, 1, 0], [1, 1.29, 0], [1, 1.31, 0], [3, 3, 0]],
+        float,
+    )
+    target = np.array([0, 0, 1, 1, 0, 0, 0], bool)
+    sel = np.array([0, 0, 1, 1, 1, 1, 1], bool)
+    assert stray_share(sel, target, means) == pytest.approx(2 / 5)
+    assert stray_share(target, target, means) == 0.0
+    assert stray_share(np.zeros(7, bool), target, means) == 0.0  # nothing selected
+    assert stray_share(sel, np.zeros(7, bool), means) == 1.0  # no target: all of it strays

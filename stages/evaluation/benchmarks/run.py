@@ -381,7 +381,7 @@ def _answer(
     train = s.room.scene.views("train")
     hp = HyperplaneParams(threshold=p.threshold)
     planes = HyperplaneRun(wdir / "hyperplanes.h5", refit=True)
-    lp = LiftParams(lift=True, res_views=p.res_views, min_evidence=p.min_evidence)
+    lp = LiftParams(lift=True, res_views=p.res_views, min_evidence=p.min_evidence, clean=p.clean)
     preds: dict[str, dict[str, np.ndarray]] = {}
     scores: dict[str, np.ndarray] = {}  # query id -> [G] the answer's scores
     maps: dict[str, dict[str, np.ndarray]] | None = None
