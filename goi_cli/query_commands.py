@@ -26,6 +26,7 @@ from stages.query.masks import MaskParams, MaskRun
 from stages.query.osh import HyperplaneParams
 from stages.query.pipeline import PromptSources, QueryParams, QueryRun
 from stages.query.pointing import PointParams
+from stages.query.reprompt import RepromptParams
 
 field_option = click.option(
     "--field", type=EXISTING, required=True, help="Field artifact (goi fit-field)."
@@ -156,11 +157,13 @@ lift_options = stack(
         "a RES model runs.",
     ),
     dataclass_options(RefineParams, skip=("all_views",)),
+    dataclass_options(RepromptParams),
 )
 
 
 def build_lift(kw: dict) -> tuple[LiftParams, RefineParams]:
-    """The lifted mode's options from the parsed keyword arguments (removing them)."""
+    """The lifted mode's options from the parsed keyword arguments (removing them; --refine's
+    are left for `build_reprompt`)."""
     views = kw.pop("res_views", None)
     lp, refine = build(LiftParams, kw), build(RefineParams, kw)
     if views == "all":
@@ -168,6 +171,16 @@ def build_lift(kw: dict) -> tuple[LiftParams, RefineParams]:
     else:
         lp.res_views = views
     return lp, refine
+
+
+def build_reprompt(kw: dict, lift: bool) -> RepromptParams:
+    """--refine and its options (removing them): only on the lifted routes."""
+    from stages.core.errors import GoiError
+
+    rp = build(RepromptParams, kw)
+    if not lift and rp != RepromptParams():
+        raise GoiError("--refine, --refine-rounds, --refine-settle: only with --lift")
+    return rp
 
 
 #: render-mask / select: the scene and one prompt's answer, from a plane or lifted.
@@ -199,6 +212,7 @@ def _lifted_answer(  # noqa: ANN202
     from stages.query.lift_files import answer_prompt
     from stages.query.pipeline import check_field_free, check_refine, open_growing
     from stages.query.prompts import Prompt, text_embedding
+    from stages.query.reprompt import sam_reviser
     from stages.query.res import res_source
     from stages.render.rasterizer import Rasterizer
     from stages.semantics.decode import SemanticRenderer
@@ -206,6 +220,7 @@ def _lifted_answer(  # noqa: ANN202
 
     src = build(PromptSources, kw)
     lp, refine = build_lift(kw)
+    rp = build_reprompt(kw, lp.lift)
     hp = build(HyperplaneParams, kw) if "loss" in kw else HyperplaneParams()
     lp.check(hp)
     check_refine(refine, lp, src)
@@ -229,9 +244,10 @@ def _lifted_answer(  # noqa: ANN202
     grow = open_growing(src, scene, refine, TERMINAL)
     try:
         masks = res_source(src.res_masks, src.bundle, prompt, rast, src.res_index, scene, grow)
+        revise = sam_reviser(rp, scene, rast, src.bundle, masks, report=TERMINAL)
         ans = answer_prompt(
             scene, renderer, prompt.text, embedding, masks, hp, lp, TERMINAL, need_positive,
-            refine=refine, on_answer=on_answer if refine.progressive else None,
+            refine=refine, on_answer=on_answer if refine.progressive else None, revise=revise,
         )  # fmt: skip
     finally:
         if grow is not None:
@@ -244,6 +260,7 @@ def _not_lifted(kw: dict) -> None:
     lp, refine = build_lift(kw)
     lp.check()
     refine.check(lp.lift)
+    build_reprompt(kw, lp.lift)
 
 
 def _need_field(field: Path | None) -> Path:
@@ -638,10 +655,11 @@ def query_cmd(field: Path | None, prompt: str | None, **kw) -> None:
     src = build(PromptSources, kw)
     hp, qp, run = build(HyperplaneParams, kw), build(QueryParams, kw), build(QueryRun, kw)
     lp, refine = build_lift(kw)
+    rp = build_reprompt(kw, lp.lift)
     q = Prompt.checked(prompt, src.prompt_id) if prompt is not None else None
     with staged_outputs():  # masks, selection, PLY and the plane appear together, or not at all
         r = run_query(scene, field, q, src, hp, qp, run, report=TERMINAL, lp=lp, refine=refine,
-                      points=points)  # fmt: skip
+                      points=points, reprompt=rp)  # fmt: skip
     click.echo(f"prompt:     {r.prompt}")
     if points:
         answers = r.info["pointed"]["answers"]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +40,7 @@ from stages.evaluation.report import eval_page, page_files_dir
 from stages.evaluation.room import Prompt, Room, load_room
 from stages.evaluation.variants import (
     FIELD_KIND,
+    LIFTED,
     VARIANTS,
     Answerers,
     DirectModel,
@@ -52,9 +53,12 @@ from stages.evaluation.variants import (
 from stages.evaluation.worst import add_against_exact, add_worst_prompts
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.hyperplanes import HyperplaneRun
-from stages.query.lift_answer import lifted_masks
+from stages.query.lift_answer import Revise, lifted_masks
 from stages.query.lift_math import LiftParams
 from stages.query.osh import THRESHOLD, HyperplaneParams
+from stages.query.point_files import point_bundle
+from stages.query.pointing import PhotoEmbeddings, sam_of
+from stages.query.reprompt import RepromptParams, sam_reviser
 from stages.query.res import ResFiles, ResIndexed, ResModel, ResSource, checked_index
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
@@ -228,11 +232,31 @@ def _fit_models(
     return tfcc, direct
 
 
+def _refiner(
+    bundle: Bundle, scene: Scene, rast: Rasterizer, report: Report
+) -> Callable[[ResSource], Revise]:
+    """The _refined variants' SAM: one set of image embeddings for every prompt (the index's
+    when the RES source is an index of this bundle, else the photos', computed once)."""
+    sam = sam_of(bundle)
+    photos = PhotoEmbeddings(scene, sam, report)
+    p = RepromptParams(refine="sam")
+
+    def make(source: ResSource) -> Revise:
+        revise = sam_reviser(p, scene, rast, bundle, source, images=photos, report=report)
+        assert revise is not None
+        return revise
+
+    return make
+
+
 def _res_bundle(res: Path | None, bundle: Path | None) -> Bundle | None:
     """The bundle whose RES makes the masks, its models opened and checked before any work;
     None when the masks are files."""
     if (res is None) == (bundle is None):
-        raise GoiError("give one of --res-masks DIR or --bundle DIR (a bundle with a RES)")
+        raise GoiError(
+            "give one of --res-masks DIR or --bundle DIR (a bundle with a RES); both only with "
+            "a _refined variant (the bundle is then the SAM prompted back)"
+        )
     if bundle is None:
         return None
     b = load_bundle(bundle)
@@ -614,7 +638,15 @@ def run_eval(
         raise GoiError(f"--html: {run.html} is also --out; give the page another path")
     # every prompt's RES masks are found (or the bundle's RES opened and checked), and the
     # features and texts are checked to share one space, before anything is written
-    bundle = _res_bundle(res, run.bundle)
+    refining = [v for v in variants if v.endswith("_refined")]
+    bundle: Bundle | None
+    sam_bundle: Bundle | None
+    if res is not None and run.bundle is not None and refining:
+        # the mask files are the RES; the bundle is the SAM the _refined variants prompt back
+        bundle, sam_bundle = None, point_bundle(run.bundle)
+    else:
+        bundle = _res_bundle(res, run.bundle)
+        sam_bundle = point_bundle(bundle) if refining else None
     sources: dict[str, ResSource] = {}
     if res is not None:
         if run.res_index is not None:
@@ -679,6 +711,8 @@ def run_eval(
     models = Answerers.of(scene, tfcc, direct)
     if bundle is not None and not sources:  # one bundle, its sessions shared by every prompt
         sources = {p.id: ResModel(bundle, p.text, models.rast) for p in room.prompts}
+    if sam_bundle is not None:
+        models.refiner = _refiner(sam_bundle, scene, models.rast, report)
     with timer("contribution_3d"):
         weight = _visibility(room) if room.gaussian_ids is not None else None
     test = {c.name for c in scene.views("test")}
@@ -715,7 +749,7 @@ def run_eval(
                     "params": lp.config(),
                 }
             }
-            if "lifted" in variants or "lifted_fieldless" in variants
+            if any(v in LIFTED for v in variants)
             else {}
         ),
         "timings_s": timer.t,

@@ -14,6 +14,9 @@ and goi's added mode (not in the paper):
   lifted_fieldless  the same views' RES masks lifted, without any field (no features,
                 codebook or fit-field): the vote alone decides and the Gaussians no view's
                 evidence reaches stay out; measures what the field adds to lifted
+  lifted_refined, lifted_fieldless_refined   the same, then SAM prompted back from the 3D
+                answer in every lifted view (stages.query.reprompt, --refine sam): its masks
+                voted beside the RES masks; needs a bundle with a SAM
 
 The fixed threshold is goi's one documented default (stages.query.osh.THRESHOLD) for every
 prompt and room; it is never tuned on test masks.
@@ -29,9 +32,15 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.core.errors import warn
+from stages.core.errors import GoiError, warn
 from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane
-from stages.query.lift_answer import MaskSource, lift_prompt, lifted_masks, view_visibility
+from stages.query.lift_answer import (
+    MaskSource,
+    Revise,
+    lift_prompt,
+    lifted_masks,
+    view_visibility,
+)
 from stages.query.lift_math import LiftParams, vote_share
 from stages.query.masks import mask_of
 from stages.query.osh import Counts, HyperplaneParams, fit_osh, probability, threshold_plane
@@ -44,7 +53,18 @@ from stages.scene.scene import Scene
 from stages.semantics.decode import COVERED_ALPHA, DecodedView, SemanticRenderer
 from stages.semantics.field import Field
 
-VARIANTS = ("full", "without_osh", "without_tfcc", "baseline", "lifted", "lifted_fieldless")
+VARIANTS = (
+    "full",
+    "without_osh",
+    "without_tfcc",
+    "baseline",
+    "lifted",
+    "lifted_fieldless",
+    "lifted_refined",
+    "lifted_fieldless_refined",
+)
+#: The lifted variants; those ending in _refined prompt SAM back from the answer (--refine sam).
+LIFTED = ("lifted", "lifted_fieldless", "lifted_refined", "lifted_fieldless_refined")
 #: Which field each variant needs: "tfcc" (the paper's), "direct" (fit-field --no-tfcc) or
 #: "none" (the field-free lifted mode).
 FIELD_KIND = {
@@ -54,6 +74,8 @@ FIELD_KIND = {
     "baseline": "direct",
     "lifted": "tfcc",
     "lifted_fieldless": "none",
+    "lifted_refined": "tfcc",
+    "lifted_fieldless_refined": "none",
 }
 #: Pixels per fitting view the per-pixel (without-TFCC) hyperplane is fitted on.
 DIRECT_FIT_PIXELS = 20_000
@@ -155,9 +177,11 @@ def predict_lifted(
     q: Question,
     with_field: bool,
     entry: np.ndarray | None = None,
+    revise: Revise | None = None,
 ) -> Prediction:
     """The lifted answer (with the field, or field-free from a bare Rasterizer) and its masks
-    on the test views; `entry` [G]: the field's decoded entries, when known."""
+    on the test views; `entry` [G]: the field's decoded entries, when known; `revise`: SAM
+    prompted back from the answer (the _refined variants)."""
     source, lp = q.source, q.lp
     # mask files stand in for a model that answers on the views goi picks; a bundle's RES
     # model answers on them itself
@@ -165,7 +189,8 @@ def predict_lifted(
     if lp.res_views is not None and isinstance(source, ResFiles):
         src = RoomModel(source)
     text = q.text if with_field else None
-    ans = lift_prompt(renderer, q.train, src, q.prompt.text, text, q.hp, lp, visibility)
+    ans = lift_prompt(renderer, q.train, src, q.prompt.text, text, q.hp, lp, visibility,
+                      revise=revise)  # fmt: skip
     rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
     masks = lifted_masks(rast, ans.selected, [test_cams[v] for v in q.views])
     rec = ans.record(lp)
@@ -176,6 +201,7 @@ def predict_lifted(
         "n_evident": rec["n_evident"],
         "fusion": rec["fusion"],
         "clean": rec["clean"],
+        **({"refine": rec["refine"]} if "refine" in rec else {}),
     }
     fallback = None
     if ans.plane is not None and isinstance(renderer, SemanticRenderer):
@@ -273,6 +299,8 @@ class Answerers:
     rast: Rasterizer
     visibility: VisibilityCache
     cams: dict[str, Camera]  # test view -> camera
+    #: the _refined variants' SAM, given the prompt's RES source (None: no SAM was given)
+    refiner: Callable[[ResSource], Revise] | None = None
 
     @classmethod
     def of(
@@ -293,14 +321,20 @@ class Answerers:
 
     def predict(self, variant: str, q: Question) -> Prediction:
         """The variant's answer to the question on its test views."""
-        if variant in ("lifted", "lifted_fieldless"):
+        if variant in LIFTED:
             renderer: SemanticRenderer | Rasterizer = self.rast
             entry = None
-            if variant == "lifted":
+            with_field = FIELD_KIND[variant] == "tfcc"
+            if with_field:
                 assert self.tfcc is not None
                 renderer, entry = self.tfcc.renderer, self.tfcc.entry
+            revise = None
+            if variant.endswith("_refined"):
+                if self.refiner is None:
+                    raise GoiError(f"--variants {variant}: needs --bundle DIR with a SAM")
+                revise = self.refiner(q.source)
             return predict_lifted(
-                renderer, self.visibility, self.cams, q, variant == "lifted", entry
+                renderer, self.visibility, self.cams, q, with_field, entry, revise
             )
         if FIELD_KIND[variant] == "tfcc":
             assert self.tfcc is not None

@@ -67,6 +67,11 @@ from stages.semantics.field import Field
 Partial = Callable[[Callable[[], "LiftedAnswer"], int, int], None]
 #: on_answer(answer, views it rests on, views it refines to): see lift_prompt.
 OnAnswer = Callable[["LiftedAnswer", int, int], object]
+#: revise(answer, revote) -> (a better answer, its record): see lift_prompt (`revote` votes a
+#: list of evidence with the answer's own fusion). stages.query.reprompt makes one.
+Revise = Callable[
+    ["LiftedAnswer", Callable[[list[ViewEvidence]], "LiftedAnswer"]], tuple["LiftedAnswer", dict]
+]
 
 
 @dataclass
@@ -117,6 +122,8 @@ class LiftedAnswer:
     #: what cleaning did (stages.query.clean.clean_selection's record); None: not cleaned
     #: (--no-clean, or a preview while views are lifted)
     cleaned: dict | None = None
+    #: what re-prompting SAM from the answer did (stages.query.reprompt); None: not asked
+    revised: dict | None = None
 
     @property
     def selected(self) -> np.ndarray:
@@ -143,6 +150,7 @@ class LiftedAnswer:
             "n_selected_by_semantics": int((lf.selected & ~lf.evident).sum()),
             "fusion": lf.info,
             "clean": self.cleaned,
+            **({"refine": self.revised} if self.revised is not None else {}),
             **(
                 {
                     "refinement": {
@@ -236,6 +244,7 @@ def lift_prompt(
     partial: Partial | None = None,
     refine: RefineParams | None = None,
     on_answer: OnAnswer | None = None,
+    revise: Revise | None = None,
 ) -> LiftedAnswer:
     """The lifted answer of one prompt (see the module doc). A bare Rasterizer (and text None)
     gives the field-free answer. `visibility` may give a cached view_visibility (the eval shares
@@ -243,7 +252,9 @@ def lift_prompt(
     `make()` gives the answer of the views so far (a preview when every view is lifted:
     `_answer`'s `fit`; the caller decides when it is worth it; `goi view` shows the answer
     refining). On an index that grows, with `refine.progressive`, `on_answer(answer, done,
-    total)` gets each answer worth writing before the last (which is returned)."""
+    total)` gets each answer worth writing before the last (which is returned). `revise`
+    (--refine sam) gets the final answer before it is cleaned, with the vote of the answer's
+    own fusion, and returns a better one (stages.query.reprompt)."""
     check_params(lp)
     refine = refine or RefineParams()
     check_params(refine)
@@ -287,6 +298,7 @@ def lift_prompt(
                 rast, field, entry, source, train, pool, prompt, text, hp, lp, n, refine,
                 vis_of, report, partial, on_answer,
             )  # fmt: skip
+            grown = _revised(grown, revise, field, entry, prompt, text, hp, lp)
             return _found_nothing(_cleaned(grown, lp, rast.means), source, prompt)
         # the index holds enough views: answered from them as from any index
     if source.every_view and lp.res_views is None:
@@ -299,6 +311,7 @@ def lift_prompt(
                 partial(make, len(evidence), len(pool))
         everything = "all mask files" if files else f"every indexed view ({source.source})"
         lifted_all = _answer(evidence, field, entry, prompt, text, hp, lp, everything)
+        lifted_all = _revised(lifted_all, revise, field, entry, prompt, text, hp, lp)
         return _found_nothing(_cleaned(lifted_all, lp, rast.means), source, prompt)
     k = lp.res_views or (len(pool) if refine.all_views else DEFAULT_MODEL_VIEWS)
     if k > len(pool):
@@ -323,6 +336,7 @@ def lift_prompt(
         if partial is not None:
             partial(functools.partial(_given, answer), step + 1, k)
     assert answer is not None  # k >= 1
+    answer = _revised(answer, revise, field, entry, prompt, text, hp, lp)
     return _found_nothing(_cleaned(answer, lp, rast.means), source, prompt)
 
 
@@ -418,6 +432,28 @@ def _lift_growing(
 def _given(answer: LiftedAnswer | None) -> LiftedAnswer:
     assert answer is not None
     return answer
+
+
+def _revised(
+    answer: LiftedAnswer,
+    revise: Revise | None,
+    field: Field | None,
+    entry: np.ndarray,
+    prompt: str,
+    text: np.ndarray | None,
+    hp: HyperplaneParams,
+    lp: LiftParams,
+) -> LiftedAnswer:
+    """The answer `revise` makes better (--refine sam), voting with the answer's own fusion;
+    the answer itself without one, or when every RES mask is empty (nothing to prompt from)."""
+    if revise is None or not any(not e.empty for e in answer.evidence):
+        return answer
+
+    def revote(evidence: list[ViewEvidence]) -> LiftedAnswer:
+        return _answer(evidence, field, entry, prompt, text, hp, lp, answer.chosen_by)
+
+    better, record = revise(answer, revote)
+    return dataclasses.replace(better, refines_to=answer.refines_to, revised=record)
 
 
 def _cleaned(answer: LiftedAnswer, lp: LiftParams, means: np.ndarray) -> LiftedAnswer:

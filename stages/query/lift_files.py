@@ -22,6 +22,7 @@ from stages.query.lift_answer import (
     OnAnswer,
     Partial,
     RefineParams,
+    Revise,
     lift_prompt,
     lifted_masks,
     rgb_and_selection,
@@ -50,9 +51,11 @@ def answer_prompt(
     partial: Partial | None = None,
     refine: RefineParams | None = None,
     on_answer: OnAnswer | None = None,
+    revise: Revise | None = None,
 ) -> LiftedAnswer:
     """The lifted answer; with `need_positive` (a plane is to be stored from it) refused when
-    no lifted mask has a positive pixel. `partial`, `refine`, `on_answer`: see lift_prompt."""
+    no lifted mask has a positive pixel. `partial`, `refine`, `on_answer`, `revise`: see
+    lift_prompt."""
     with warnings.catch_warnings():
         if need_positive:  # an empty answer is refused below: its warning would say it twice
             warnings.simplefilter("ignore", GoiWarning)
@@ -68,6 +71,7 @@ def answer_prompt(
             partial=partial,
             refine=refine,
             on_answer=on_answer,
+            revise=revise,
         )
     if need_positive:
         require_positive_evidence(ans, source.source)

@@ -34,6 +34,7 @@ from stages.query.masks import (
 from stages.query.osh import HyperplaneParams, threshold_plane
 from stages.query.point_files import Points, open_pointer, write_pointed_selection
 from stages.query.prompts import Prompt, text_embedding
+from stages.query.reprompt import RepromptParams, sam_reviser
 from stages.query.res import NothingFound, res_source
 from stages.query.selection import Selection, select, write_selection
 from stages.render.rasterizer import Rasterizer
@@ -143,6 +144,7 @@ def run_query(
     lp: LiftParams | None = None,
     refine: RefineParams | None = None,
     points: Points | None = None,
+    reprompt: RepromptParams | None = None,
 ) -> QueryResult:
     """The query of one prompt (checked, `Prompt.checked`). field_path None (with --lift) is
     the field-free lifted mode. `refine`: on a RES index that grows, how the answer refines
@@ -150,13 +152,16 @@ def run_query(
     None) or refining the prompt's answer (stages.query.pointing)."""
     lp = lp or LiftParams()
     refine = refine or RefineParams()
-    for params in (hp, qp, run, lp, refine):
+    reprompt = reprompt or RepromptParams()
+    for params in (hp, qp, run, lp, refine, reprompt):
         check_params(params)
+    if reprompt.refine != "none" and not lp.lift:
+        raise GoiError("--refine: only with --lift (it re-prompts SAM from the lifted answer)")
     lp.check(hp)
     check_refine(refine, lp, sources)
     if points:
         return _run_pointed(scene, field_path, prompt, sources, hp, qp, run, lp, refine, points,
-                            report)  # fmt: skip
+                            report, reprompt)  # fmt: skip
     if prompt is None:
         raise GoiError("--prompt is needed (or --click / --box: clicks and boxes answered by SAM)")
     if field_path is None and renderer is None:
@@ -168,7 +173,7 @@ def run_query(
         _check_outputs(scene, None, prompt, sources, run, cams)
         make_dir(run.out, "--out")
         return _run_lifted(
-            scene, None, prompt, None, sources, hp, lp, run, cams, rast, report, refine
+            scene, None, prompt, None, sources, hp, lp, run, cams, rast, report, refine, reprompt
         )
     assert field_path is not None
     field = renderer.field if renderer else load_field_for(field_path, scene.ply_digest())
@@ -183,8 +188,9 @@ def run_query(
     out = make_dir(run.out, "--out")
     if lp.lift:
         return _run_lifted(
-            scene, field_path, prompt, text, sources, hp, lp, run, cams, renderer, report, refine
-        )
+            scene, field_path, prompt, text, sources, hp, lp, run, cams, renderer, report, refine,
+            reprompt,
+        )  # fmt: skip
     res_dir = None
     if qp.mode == "hyperplane":
         masks = res_source(
@@ -307,6 +313,7 @@ def _run_lifted(
     renderer: SemanticRenderer | Rasterizer,
     report: Report,
     refine: RefineParams,
+    reprompt: RepromptParams,
 ) -> QueryResult:
     """--lift: the RES masks of several views lifted onto the Gaussians (stages.query.lift_answer);
     a bare Rasterizer (no field) gives the field-free answer. On a RES index that grows, with
@@ -345,9 +352,10 @@ def _run_lifted(
             sources.res_masks, sources.bundle, prompt, rast, sources.res_index, scene, grow,
         )  # fmt: skip
         on_answer = write if refine.progressive else None
+        revise = sam_reviser(reprompt, scene, rast, sources.bundle, masks, report=report)
         ans = answer_prompt(
             scene, renderer, prompt.text, text, masks, hp, lp, report, refine=refine,
-            on_answer=on_answer,
+            on_answer=on_answer, revise=revise,
         )  # fmt: skip
     finally:
         if grow is not None:
@@ -388,6 +396,7 @@ def _run_pointed(
     refine: RefineParams,
     points: Points,
     report: Report,
+    reprompt: RepromptParams,
 ) -> QueryResult:
     """Clicks and boxes, alone or refining the prompt's answer: the text answer first (any
     route, nothing written), then SAM's answers added and taken out; the masks are rendered
@@ -427,8 +436,9 @@ def _run_pointed(
         try:
             masks = res_source(sources.res_masks, sources.bundle, prompt, rast,
                                sources.res_index, scene, grow)  # fmt: skip
+            revise = sam_reviser(reprompt, scene, rast, sources.bundle, masks, report=report)
             ans = answer_prompt(scene, renderer if field_path else rast, prompt.text, text,
-                                masks, hp, lp, report, refine=refine)  # fmt: skip
+                                masks, hp, lp, report, refine=refine, revise=revise)  # fmt: skip
         finally:
             if grow is not None:
                 grow.close()

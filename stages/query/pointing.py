@@ -66,7 +66,7 @@ from stages.query.point_math import (
     project_points,
     unoccluded,
 )
-from stages.query.res_index import GrowingIndex, index_order
+from stages.query.res_index import GrowingIndex, ResIndex, index_order
 from stages.render.constants import NEAR
 from stages.render.lift import lift_mask, selection_mask
 from stages.render.probe import probe
@@ -223,11 +223,11 @@ class IndexedEmbeddings:
     """SAM's image side from a RES index of the bundle (`GrowingIndex`): a view it lacks is
     indexed first, and kept for the next prompts, as a text prompt's lifted answer does."""
 
-    def __init__(self, index: GrowingIndex, sam: Sam):
+    def __init__(self, index: GrowingIndex | ResIndex, sam: Sam):
         self.index, self.sam = index, sam
 
     def embedding(self, cam: Camera) -> dict[str, np.ndarray]:
-        if cam.name not in self.index.views:
+        if cam.name not in self.index.views and isinstance(self.index, GrowingIndex):
             self.index.add(cam)
         return self.sam.from_side(self.index.image_side(cam.name))
 
@@ -539,10 +539,12 @@ class Pointer:
     ) -> tuple[np.ndarray, dict]:
         p = self.p
         neg = {c.name: _negatives(minus, c, self.rast, p.depth_tolerance) for c in seed.views}
-        if seed.seed is not None:  # a box says how large: SAM outlines its box in each view
+        if seed.seed is not None:
+            # a box: its own view's outline is a side of the object; SAM is asked with its
+            # box, grown, in the views that see it, as a click's answer grows
             selected = seed.seed
             rounds = [int(selected.sum())]
-            shares = [TIGHT]
+            shares = [p.grow] * p.grow_rounds + [TIGHT] if granularity == "object" else [TIGHT]
         else:
             # the part: SAM given the click's pixel in every view
             got = self._points_round(seed, neg, check, lenient=granularity == "object")

@@ -28,20 +28,25 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 
+from stages.core.errors import GoiError
 from stages.core.params import Choice, Range
 from stages.core.report import SILENT, Report
+from stages.models.bundle import Bundle
 from stages.models.grounded import Sam
-from stages.query.lift_answer import LiftedAnswer, view_evidence
+from stages.query.lift_answer import LiftedAnswer, Revise, view_evidence
 from stages.query.lift_math import ViewEvidence
 from stages.query.point_math import box_pixels, expand_box, interior_points, main_parts, mask_box
 from stages.query.pointing import BOX_KEEP, INTERIOR_POINTS, TIGHT, SamImages
+from stages.query.res_index import GrowingIndex, ResIndex
 from stages.render.lift import selection_mask
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
+from stages.scene.scene import Scene
 
 REFINERS = ("none", "sam")
 #: What the vote rejected outright: a Gaussian the masks see whose share is below this.
@@ -148,3 +153,40 @@ def reprompt(
             break
     record = {"by": "sam", "rounds": rounds, "seconds": round(time.perf_counter() - t0, 3)}
     return answer, record
+
+
+def sam_reviser(
+    p: RepromptParams,
+    scene: Scene,
+    rast: Rasterizer,
+    bundle: Path | Bundle | None,
+    source: object = None,
+    images: SamImages | None = None,
+    check: Callable[[], None] = lambda: None,
+    report: Report = SILENT,
+) -> Revise | None:
+    """The `revise` of lift_prompt for --refine sam (None for --refine none): SAM from
+    --bundle; the views' image embeddings from the RES source's index when it has one of this
+    bundle (views it lacks are indexed), else `images`, else from the photos (kept for the
+    run)."""
+    if p.refine == "none":
+        return None
+    from stages.query.point_files import point_bundle
+    from stages.query.pointing import IndexedEmbeddings, PhotoEmbeddings, sam_of
+
+    try:
+        b = point_bundle(bundle)
+    except GoiError as e:
+        raise GoiError(f"--refine sam: {e}") from None
+    sam = sam_of(b)
+    index = getattr(source, "index", None)
+    if isinstance(index, GrowingIndex | ResIndex) and index.bundle_sha256 == b.digest():
+        images = IndexedEmbeddings(index, sam)
+    elif images is None:
+        images = PhotoEmbeddings(scene, sam, report)
+    cams = {c.name: c for c in scene.views("train")}
+
+    def revise(answer: LiftedAnswer, revote: Callable[[list[ViewEvidence]], LiftedAnswer]):  # noqa: ANN202
+        return reprompt(answer, rast, sam, images, cams, revote, p, check, report)
+
+    return revise

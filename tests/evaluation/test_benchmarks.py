@@ -50,7 +50,7 @@ def test_benchmark_scored_end_to_end(tmp_path, benchmark, capsys):
     assert main(_argv(s, benchmark, out, "--html", str(html), "--variants", variants)) == 0
     r = json.loads(out.read_text())
     validate_json(r, "goi.eval", str(out))
-    assert r["schema_version"] == "1.7" and r["benchmark"]["name"] == benchmark
+    assert r["schema_version"] == "1.8" and r["benchmark"]["name"] == benchmark
     scene = r["benchmark"]["scenes"][name]
     assert scene["n_frames"] == 2 and not scene["skipped"]
     cams = scene["frames"]  # frame -> camera (at the ground truth's size: name_WxH)
