@@ -345,10 +345,13 @@ class Pointer:
         boxes: list[BoxPrompt],
         base: np.ndarray | None = None,
         check: Callable[[], None] = lambda: None,
+        partial: Callable[[np.ndarray, str], None] | None = None,
     ) -> PointAnswer:
         """The clicks' and boxes' answer: `base` (a text answer, or nothing) with every plus
         click's and box's answer added and every minus click's taken out (at the granularity
-        asked: what is taken out is what the selection holds of it)."""
+        asked: what is taken out is what the selection holds of it). `check` is called between
+        SAM's runs (it may raise to stop); `partial(selected [G], what)` gets the answer after
+        each round (a part, then the object growing), for a viewer to show as it refines."""
         p = self.p
         if not clicks and not boxes:
             raise GoiError("give at least one --click or --box")
@@ -381,7 +384,15 @@ class Pointer:
             # each answer is told where the other sign's clicks are: SAM leaves them out
             other = minus if plus else plus_points
             seed = self._seed(what, cam, other)
-            got, rec = self._grow(seed, other, check, p.granularity)
+            so_far = selected.copy()
+
+            def shown(
+                got: np.ndarray, label: str, plus: bool = plus, so_far: np.ndarray = so_far
+            ) -> None:
+                if partial is not None:
+                    partial(so_far | got if plus else so_far & ~got, label)
+
+            got, rec = self._grow(seed, other, check, p.granularity, shown)
             if plus:
                 selected |= got
                 record["answers"].append({**rec, "sign": "+", "gaussians": int(got.sum())})
@@ -404,16 +415,12 @@ class Pointer:
     def _click_seed(self, click: Click, cam: Camera) -> Seed:
         """The training views that see the click's point (on their image, not hidden: their
         surface at its pixel is at its depth), chosen from different sides, from the view
-        clicked in, and the point's pixel in each; and what SAM outlines at the click in its
-        own view, lifted (what a view's outline is compared with: `_points_round`)."""
+        clicked in, and the point's pixel in each; and what SAM outlines at the click in the
+        view clicked in (a training view; else the first view chosen: a novel camera has no
+        photo, and its render would cost an image encoding), lifted: what a view's outline is
+        compared with (`_points_round`)."""
         tol = self.p.depth_tolerance
         X = click_point(self.rast, cam, click)
-        logits = self.sam.prompt_logits(
-            self._own_embedding(cam), (cam.height, cam.width), np.array([[click.u, click.v]]),
-            np.ones(1),
-        )  # fmt: skip
-        self.decoder_runs += 1
-        outline = self._lifted(cam, logits > 0)
         seen = [c for c in self.train if visible(self.rast, c, X[None], tol)[0]]
         if not seen:
             raise GoiError(
@@ -425,8 +432,12 @@ class Pointer:
         pos = {c.name: project_points(c, X[None])[0] for c in views}
         if clicked is cam and cam.name in pos:
             pos[cam.name] = np.array([[click.u, click.v]])  # its own view: the pixel clicked
-        own_view = (cam.name,) if clicked is cam else ()
-        return Seed(f"click {click.text()}", None, views, pos, outline, own_view)
+        own = cam if clicked is cam else views[0]
+        logits = self.sam.prompt_logits(self.images.embedding(own), (own.height, own.width),
+                                        pos[own.name], np.ones(1))  # fmt: skip
+        self.decoder_runs += 1
+        outline = self._lifted(own, logits > 0)
+        return Seed(f"click {click.text()}", None, views, pos, outline, (own.name,))
 
     def _lifted(self, cam: Camera, mask: np.ndarray) -> np.ndarray:
         """[G] bool: the Gaussians `cam` shows inside `mask` (more of their weight in than out,
@@ -535,7 +546,12 @@ class Pointer:
         return lifted.selected
 
     def _grow(
-        self, seed: Seed, minus: list[np.ndarray], check: Callable[[], None], granularity: str
+        self,
+        seed: Seed,
+        minus: list[np.ndarray],
+        check: Callable[[], None],
+        granularity: str,
+        shown: Callable[[np.ndarray, str], None] = lambda s, w: None,
     ) -> tuple[np.ndarray, dict]:
         p = self.p
         neg = {c.name: _negatives(minus, c, self.rast, p.depth_tolerance) for c in seed.views}
@@ -552,6 +568,7 @@ class Pointer:
                 raise GoiError(f"{seed.what}: SAM outlines nothing of the scene there")
             selected = got
             rounds = [int(selected.sum())]
+            shown(selected, f"{seed.what}: the part")
             if granularity == "part":
                 return selected, self._record(seed, rounds)
             if len(seed.views) < FEW_VIEWS:
@@ -571,6 +588,7 @@ class Pointer:
             added = int((grown & ~selected).sum())
             selected = grown
             rounds.append(int(selected.sum()))
+            shown(selected, f"{seed.what}: growing to the object")
             if share != TIGHT and added < p.settle * max(1, int(selected.sum())):
                 if i + 1 < len(shares):  # settled early: the tight round still comes
                     grown = self._box_round(seed, selected, neg, TIGHT, check)
