@@ -44,7 +44,7 @@ def _serve(session, wait_page: bool = True):  # noqa: ANN001, ANN202
     from stages.view.app import ViewerApp
 
     app = ViewerApp(session)
-    url = app.start().replace("http://", "ws://")
+    url = app.start()
     client = Client(url)
     page = None
     for _ in range(600):

@@ -85,16 +85,22 @@ class ViewerApp:
     # -- serving ------------------------------------------------------------------------------
 
     def start(self) -> str:
-        import viser
+        """Serve; returns the page's address (with the run's token unless --no-token)."""
+        from stages.view.access import Access, new_token, server_names
+        from stages.view.server import Guard, servable_port, serve
 
         # a tab closed while its answer or mask was on the way: nothing is lost, say nothing
         warnings.filterwarnings("ignore", message="Queued a .* on a closed connection")
 
         run = self.session.run
-        with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: goi prints its own
-            self.server = viser.ViserServer(host=run.host, port=run.port, verbose=False)
+        port = servable_port(run.host, run.port)
+        self.access = Access(None if run.no_token else new_token(), server_names(run.host))
+        guard = Guard(self.access, run.max_pages, run.max_message_bytes, self.log)
+        self.server = serve(run.host, port, guard, self._share_refused)
         srv = self.server
-        srv.gui.configure_theme(control_width="large", show_logo=False, dark_mode=False)
+        srv.gui.configure_theme(
+            control_width="large", show_logo=False, show_share_button=False, dark_mode=False
+        )
         srv.scene.set_up_direction(tuple(self.up))
         first = (self.session.scene.views("train") or self.session.scene.cameras)[0]
         wxyz, pos, fov = browser_pose(first)
@@ -107,7 +113,17 @@ class ViewerApp:
         self._add_cameras()
         srv.on_client_connect(self._connect)
         srv.on_client_disconnect(self._disconnect)
-        return f"http://{_url_host(srv.get_host())}:{srv.get_port()}"
+        token = self.access.token
+        return f"http://{_url_host(run.host)}:{srv.get_port()}/" + (
+            f"?token={token}" if token else ""
+        )
+
+    def log(self, message: str) -> None:
+        """One line in the viewer's log (the terminal): prompts, answers, exports, refusals."""
+        self.report.log(f"view: {message}")
+
+    def _share_refused(self) -> None:
+        self.log("refused a page's request to publish the viewer on the internet (Share)")
 
     def stop(self) -> None:
         self.worker.stop()
@@ -557,6 +573,8 @@ def _node_name(name: str) -> str:
 
 
 def _url_host(host: str) -> str:
-    if host in ("0.0.0.0", "::", ""):
+    if host in ("0.0.0.0", ""):
         return "127.0.0.1"
+    if host == "::":
+        return "[::1]"
     return f"[{host}]" if ":" in host else host

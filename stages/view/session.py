@@ -81,8 +81,9 @@ class ViewRun:
     (OUT/cameras/) and the prompt cache of the paper's OSH (OUT/hyperplanes.h5, as goi query
     keeps it). Files goi view did not write there are never replaced."""
     host: str = "127.0.0.1"
-    """Address to serve on. Anything but a loopback address lets whoever reaches the port ask
-    prompts and write exports."""
+    """Address to serve on. Anything but a loopback address lets whoever reaches the port and
+    has the page's address (with its token) see the scene, every training photo and every
+    page's prompts, ask prompts and write exports into --out."""
     port: Annotated[int, Range(ge=0, le=65535)] = 8080
     """Port to serve on (0: any free port; a busy port is skipped for the next free one, and
     the address printed is the one served)."""
@@ -92,6 +93,16 @@ class ViewRun:
     route: Annotated[str | None, Choice(ROUTES)] = None
     """The route selected when the page opens (default: lifted where the inputs allow it,
     else lifted_fieldless, else threshold). Every route the inputs allow stays selectable."""
+    no_token: bool = False
+    """Serve the page without the run's secret token in its address (on a trusted machine
+    only: any local user, and any page that guesses the port, can then open it; other sites'
+    pages stay refused by the Origin check)."""
+    max_pages: Annotated[int, Range(ge=1, le=1000)] = 8
+    """Most pages (browser tabs) open at once; another is refused until one closes (each page
+    holds its own copy of the highlight and a mask render)."""
+    max_message_bytes: Annotated[int, Range(ge=4096, le=64 << 20)] = 256 << 10
+    """Largest message a page may send (a prompt, a camera, a setting): bigger ones close
+    that page's connection."""
     max_splats: Annotated[int, AT_LEAST_1] = 2_000_000
     """Most Gaussians sent to the browser; a bigger scene is sent as its most opaque and
     largest Gaussians (answers are always computed on all of them)."""

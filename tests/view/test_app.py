@@ -38,7 +38,7 @@ def served(session):
     from stages.view.app import ViewerApp
 
     app = ViewerApp(session)
-    url = app.start().replace("http://", "ws://")
+    url = app.start()
     clients = [Client(url), Client(url)]
     for _ in range(400):
         if len(app.pages) == 2:

@@ -80,7 +80,7 @@ def _canvas(page) -> np.ndarray:
 
     last = None
     for _ in range(60):
-        png = page.screenshot()
+        png = page.screenshot(timeout=180_000)  # a loaded machine draws slowly
         now = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(np.float32)
         if last is not None and np.abs(now - last).mean() < 0.2:
             return now
@@ -112,7 +112,7 @@ def test_a_prompt_typed_in_the_page_lights_up_goi_selects_answer(served, tmp_pat
         page.get_by_text(re.compile("camera saved")).wait_for(timeout=60_000)
         panel = page.get_by_text("goi view", exact=True).bounding_box()
         warning = page.get_by_text("Software WebGL").bounding_box()
-        page.screenshot(path=str(tmp_path / "page.png"))
+        page.screenshot(path=str(tmp_path / "page.png"), timeout=180_000)
         browser.close()
     exported = load_selection(out / safe_name(PROMPT) / "lifted_fieldless" / "selection.h5")
     args = ["--scene", str(DEMO), "--prompt", PROMPT, "--res-masks", str(DEMO / "res"),
@@ -145,3 +145,53 @@ def test_a_prompt_typed_in_the_page_lights_up_goi_selects_answer(served, tmp_pat
     assert inside.size > 2000 and outside.size > 100_000
     assert inside.mean() > 20, inside.mean()
     assert outside.mean() < 0.1 * inside.mean(), (outside.mean(), inside.mean())
+
+
+#: A page of another site that tries to drive the viewer: it opens the viewer's websocket as
+#: viser's own page does (the token too, as if it had leaked) and says in its title whether
+#: the connection opened.
+PROBE = """
+const ws = new WebSocket(%(ws)r, ["viser-v%(version)s"]);
+ws.onopen = () => { document.title = "open"; };
+ws.onclose = () => { if (document.title !== "open") document.title = "refused"; };
+"""
+
+
+def test_a_page_from_another_origin_cannot_connect(tmp_path):
+    import functools
+    import http.server
+    import threading
+
+    import viser
+
+    sync_api = pytest.importorskip("playwright.sync_api")
+    from tests.view.served import demo_session, serving
+
+    with serving(demo_session(tmp_path / "out")) as (app, url, log):
+        ws = url.replace("http://", "ws://")
+        script = PROBE % {"ws": ws, "version": viser.__version__}
+        (tmp_path / "site").mkdir()
+        (tmp_path / "site" / "index.html").write_text(f"<title>-</title><script>{script}</script>")
+        handler = functools.partial(
+            http.server.SimpleHTTPRequestHandler, directory=str(tmp_path / "site")
+        )
+        other = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        threading.Thread(target=other.serve_forever, daemon=True).start()
+        try:
+            with sync_api.sync_playwright() as p:
+                browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+                page = browser.new_page()
+                # the viewer's own page first: its cookie is in this browser now, and the same
+                # script from the page's own origin connects (the probe works)
+                page.goto(url)
+                page.evaluate(f"document.title = '-'; {script}")
+                page.wait_for_function("document.title !== '-'", timeout=60_000)
+                assert page.title() == "open"
+                # another origin on the same machine (same site: the cookie goes with it)
+                page.goto(f"http://127.0.0.1:{other.server_address[1]}/")
+                page.wait_for_function("document.title !== '-'", timeout=60_000)
+                assert page.title() == "refused"
+                browser.close()
+        finally:
+            other.shutdown()
+        assert log.has("refused a websocket from another origin")

@@ -1,0 +1,227 @@
+"""goi view as a security reviewer reads it: only its own pages drive it (Host, Origin, the
+run's token), nothing leaves the machine (Share refused), and what a page that is not viser's
+own sends is refused or dropped, never a traceback. The rules alone (stages.view.access) are
+tested without a server; the rest on a real server, with websocket clients that send what
+viser's page never sends."""
+
+import urllib.error
+import urllib.request
+
+import pytest
+
+from stages.view.access import Access, server_names
+
+TOKEN = "s3cret-token"
+OWN = {"Host": "127.0.0.1:8080"}
+
+
+def _check(headers, path="/", websocket=False, token=TOKEN):  # noqa: ANN001, ANN202
+    return Access(token, server_names("127.0.0.1")).check(path, headers, 8080, websocket)
+
+
+def test_a_page_needs_the_token_and_gets_a_cookie_for_its_websocket():
+    assert not _check(OWN).ok
+    assert not _check(OWN, "/?token=wrong").ok
+    d = _check(OWN, f"/?token={TOKEN}")
+    assert d.ok and d.set_cookie and d.set_cookie.startswith(f"goi-view-8080={TOKEN};")
+    assert "HttpOnly" in d.set_cookie and "SameSite=Strict" in d.set_cookie
+    assert _check({**OWN, "Cookie": f"goi-view-8080={TOKEN}"}).ok
+    assert not _check({**OWN, "Cookie": f"goi-view-8081={TOKEN}"}).ok  # another viewer's
+
+
+def test_a_websocket_from_another_origin_is_refused_even_with_the_token():
+    ws = {**OWN, "Cookie": f"goi-view-8080={TOKEN}"}
+    assert _check({**ws, "Origin": "http://127.0.0.1:8080"}, websocket=True).ok
+    for origin in (None, "null", "http://evil.example", "http://127.0.0.1:3000",
+                   "https://127.0.0.1:8080", "http://localhost:8080"):  # fmt: skip
+        headers = ws if origin is None else {**ws, "Origin": origin}
+        d = _check(headers, websocket=True)
+        assert not d.ok and d.status == 403 and "origin" in d.reason, origin
+    # --no-token keeps the origin check
+    assert not _check({**OWN, "Origin": "http://evil.example"}, websocket=True, token=None).ok
+    assert _check({**OWN, "Origin": "http://127.0.0.1:8080"}, websocket=True, token=None).ok
+
+
+def test_a_rebound_dns_name_is_refused():
+    """evil.example resolving to 127.0.0.1 serves its page at its own origin: Origin and Host
+    agree, but the name is not one of this server's."""
+    h = {"Host": "evil.example:8080", "Origin": "http://evil.example:8080"}
+    assert not _check(h, websocket=True, token=None).ok
+    assert not _check({"Host": "evil.example:8080"}, token=None).ok
+    assert not _check({"Host": "127.0.0.1:9999"}, f"/?token={TOKEN}").ok  # another port
+    assert not _check({}, f"/?token={TOKEN}").ok
+    assert _check({"Host": "localhost:8080"}, f"/?token={TOKEN}").ok
+    assert _check({"Host": "[::1]:8080"}, f"/?token={TOKEN}").ok
+
+
+# -- on a real server -----------------------------------------------------------------------
+
+
+@pytest.fixture
+def served(tmp_path):
+    pytest.importorskip("viser")
+    from tests.view.served import demo_session, serving
+
+    with serving(demo_session(tmp_path / "out", max_pages=2)) as s:
+        yield s
+
+
+def _client(url, **kw):  # noqa: ANN001, ANN003, ANN202
+    from stages.testing.view_client import Client
+
+    return Client(url, **kw)
+
+
+def test_only_the_own_page_with_the_token_is_served(served):
+    from websockets.exceptions import InvalidStatus
+
+    app, url, log = served
+    bare = url.split("?")[0]
+    with pytest.raises(urllib.error.HTTPError) as e:
+        urllib.request.urlopen(bare)
+    assert e.value.code == 403 and b"token" in e.value.read()
+    with urllib.request.urlopen(url) as r:
+        assert r.status == 200 and r.headers["X-Frame-Options"] == "DENY"
+        assert r.headers["Set-Cookie"].startswith(f"goi-view-{app.server.get_port()}=")
+    for kw in ({"origin": "http://evil.example"}, {"origin": "http://127.0.0.1:1"}):
+        with pytest.raises(InvalidStatus) as e:
+            _client(url, **kw)
+        assert e.value.response.status_code == 403
+    with pytest.raises(InvalidStatus):
+        _client(bare)
+    assert not app.pages
+    assert log.has("refused a websocket from another origin ('http://evil.example')")
+    assert log.has("refused a websocket without the run's token")
+    c = _client(url)
+    try:
+        from tests.view.served import wait_for
+
+        wait_for(lambda: len(app.pages) == 1, "the page built")
+    finally:
+        c.close()
+
+
+def test_the_guard_refuses_to_serve_when_viser_bypasses_it(tmp_path, monkeypatch):
+    """A viser that no longer serves through the call goi wraps is refused at start."""
+    pytest.importorskip("viser")
+    import contextlib
+
+    from stages.core.errors import GoiError
+    from stages.view import server
+    from tests.view.served import demo_session, serving
+
+    monkeypatch.setattr(server, "_websockets_seen_by_viser", lambda g: contextlib.nullcontext())
+    with pytest.raises(GoiError, match="no longer serves through the call goi view guards"):
+        with serving(demo_session(tmp_path / "out")):
+            pass
+
+
+def test_share_is_refused_and_no_tunnel_is_made(served, monkeypatch):
+    from viser import _messages, _viser
+
+    tunnels = []
+    monkeypatch.setattr(_viser, "ViserTunnel", lambda *a, **k: tunnels.append(a))
+    app, url, log = served
+    c = _client(url)
+    try:
+        from tests.view.served import wait_for
+
+        wait_for(lambda: app.pages, "the page built")
+        c.send(_messages.ShareUrlRequest())
+        wait_for(lambda: log.has("publish the viewer on the internet (Share)"), "the refusal")
+    finally:
+        c.close()
+    assert tunnels == [] and app.server._share_tunnel is None
+
+
+def test_frames_that_are_not_messages_are_dropped_with_one_line(served):
+    import msgspec
+    from viser import _messages
+
+    from tests.view.served import wait_for
+
+    app, url, log = served
+    c = _client(url)
+    try:
+        wait_for(lambda: app.pages, "the page built")
+        c.ws.send("not binary")
+        c.ws.send(b"\x00\x01 not msgpack")
+        c.ws.send(msgspec.msgpack.encode({"type": "NoSuchMessage"}))
+        bad = _messages.ViewerCameraMessage(
+            wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, float("nan"), 0.0), fov=0.9, near=0.01,
+            far=1000.0, image_height=800, image_width=1280, look_at=(0.0, 0.0, 1.0),
+            up_direction=(0.0, -1.0, 0.0),
+        )  # fmt: skip
+        c.send(bad)
+        wait_for(lambda: log.has("dropped a frame"), "the drop logged")
+        # the connection goes on: the page still answers what viser's page sends
+        page = next(iter(app.pages.values()))
+        before = page.client.camera.position
+        c.report_camera(position=(0.5, 0.0, 0.0))
+        wait_for(lambda: tuple(page.client.camera.position) != tuple(before), "camera moved")
+    finally:
+        c.close()
+    assert sum("dropped a frame" in line for line in log.lines) == 1
+    assert not any("Traceback" in line for line in log.lines)
+
+
+def test_pages_past_the_cap_are_refused(served):
+    from websockets.exceptions import InvalidStatus
+
+    from tests.view.served import wait_for
+
+    app, url, log = served
+    a, b = _client(url), _client(url)
+    try:
+        wait_for(lambda: len(app.pages) == 2, "two pages built")
+        with pytest.raises(InvalidStatus) as e:
+            _client(url)
+        assert e.value.response.status_code == 503
+        assert log.has("2 pages open")
+    finally:
+        a.close()
+    wait_for(lambda: len(app.pages) == 1, "the closed page gone")
+    c = _client(url)  # a place is free again
+    try:
+        wait_for(lambda: len(app.pages) == 2, "the new page built")
+    finally:
+        b.close()
+        c.close()
+
+
+# -- what cannot be served is refused at start, before any work ------------------------------
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--host", "no-such-host.invalid"], "--host: no-such-host.invalid does not resolve"),
+        (["--host", "203.0.113.7"], "--host: 203.0.113.7 is not an address of this machine"),
+        (["--port", "65535"], "--port: ports 65535 to 65535 are all in use"),
+        (["--for-seconds", "nan"], "--for-seconds: nan is not a finite number"),
+        (["--for-seconds", "inf"], "--for-seconds: inf is not a finite number"),
+    ],
+)
+def test_a_viewer_that_cannot_be_served_is_refused_before_any_work(args, message, tmp_path, capsys):
+    import socket
+
+    from goi_cli.main import main
+    from tests.view.served import DEMO
+
+    pytest.importorskip("viser")
+    busy = socket.socket()
+    try:
+        busy.bind(("127.0.0.1", 65535))  # the top of the range, taken
+        busy.listen()
+    except OSError:
+        pass  # taken already
+    try:
+        argv = ["view", "--scene", str(DEMO), "--res-masks", str(DEMO / "res"),
+                "--out", str(tmp_path / "out"), *args]  # fmt: skip
+        assert main(argv) == 2
+    finally:
+        busy.close()
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert len(err.strip().splitlines()) == 1, err  # the refusal alone: no line of work first
+    assert not (tmp_path / "out").exists()
