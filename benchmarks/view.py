@@ -60,14 +60,15 @@ def _serve(session, wait_page: bool = True):  # noqa: ANN001, ANN202
 def _ask(page, client: Client, prompt: str, route: str, final: bool = True) -> float:  # noqa: ANN001
     """Seconds from Enter (what the page's form calls) to the answer on the page's wire."""
     page.route = route
-    n = len(page.timeline)
+    before = page.shown
     t0 = time.perf_counter()
     page.ask(prompt)
     end = t0 + 600
     while time.perf_counter() < end:
-        done = [(t, a) for t, a in page.timeline[n:] if a.final or not final]
-        if done:
-            return client.first_after(done[0][0]) - t0
+        s = page.shown
+        if s is not None and s is not before and s.answer.prompt.text == prompt:
+            if not final or not s.preview:
+                return client.first_after(page.shown_at) - t0
         time.sleep(0.002)
     raise TimeoutError(f"no answer to {prompt!r}")
 

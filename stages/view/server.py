@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import math
 import threading
 import types
@@ -138,15 +139,37 @@ def _not_a_message(raw: object, messages: Any) -> str | None:
         return f"not a viser message ({type(e).__name__})"
     if isinstance(m, messages.ViewerCameraMessage):
         return _bad_camera(m)
+    if isinstance(m, messages.GuiUpdateMessage):
+        return _bad_gui_update(m)
     return None
 
 
+#: The longest text a page's input may hold (a prompt is capped far below, with a message).
+MAX_TEXT_VALUE = 4096
+
+
+def _bad_gui_update(m: Any) -> str | None:
+    """Why an input's new value is not one viser's page sends (None when it is one): the page
+    sends {"value": V}, V text, a flag, a number or a short list of numbers (a colour)."""
+    if not isinstance(m.updates, dict) or set(m.updates) != {"value"}:
+        return "an input update that is not a value"
+    v = m.updates["value"]
+    if isinstance(v, str):
+        return None if len(v) <= MAX_TEXT_VALUE else "an input value of over 4096 characters"
+    if isinstance(v, bool) or (isinstance(v, int | float) and math.isfinite(v)):
+        return None
+    if isinstance(v, list | tuple) and len(v) <= 4 and _finite(v, len(v)):
+        return None
+    return "an input value that is not text, a flag, a number or a colour"
+
+
 def _finite(values: object, n: int) -> bool:
-    try:
-        xs = [float(v) for v in values]  # type: ignore[attr-defined]
-    except (TypeError, ValueError):
+    """`values` is a list of `n` finite numbers (not text that reads as one, not flags)."""
+    if not isinstance(values, list | tuple) or len(values) != n:
         return False
-    return len(xs) == n and all(math.isfinite(x) for x in xs)
+    return all(
+        isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) for x in values
+    )
 
 
 def _bad_camera(m: Any) -> str | None:
@@ -280,3 +303,42 @@ def servable_port(host: str, port: int) -> int:
             raise GoiError(f"--host/--port: cannot serve on {host}:{p} ({e.strerror})") from None
         return p
     raise GoiError(f"--port: ports {port} to {last} are all in use; give another --port")
+
+
+class _OneLine(logging.Handler):
+    """A library's log record as one line of goi's log, without its traceback."""
+
+    def __init__(self, log: Callable[[str], None]):
+        super().__init__(logging.WARNING)
+        self._log = log
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            line = f"{record.name}: {record.getMessage()}"
+            if record.exc_info and record.exc_info[1] is not None:
+                e = record.exc_info[1]
+                line += f" ({type(e).__name__}: {str(e)[:200]})"
+            self._log(line[:500])
+        except Exception:  # a log line must never take the server down
+            pass
+
+
+def quiet_libraries(log: Callable[[str], None]) -> Callable[[], None]:
+    """The server's libraries (asyncio's loop, websockets) log into goi's log, one line a
+    record and no traceback, while goi view serves: what a client that is not viser's page
+    sends ends as one line, never a traceback. Returns the function that undoes it."""
+    undo = []
+    for name in ("asyncio", "websockets"):
+        logger = logging.getLogger(name)
+        handler = _OneLine(log)
+        before = logger.propagate
+        logger.addHandler(handler)
+        logger.propagate = False
+        undo.append((logger, handler, before))
+
+    def restore() -> None:
+        for logger, handler, before in undo:
+            logger.removeHandler(handler)
+            logger.propagate = before
+
+    return restore

@@ -225,3 +225,78 @@ def test_a_viewer_that_cannot_be_served_is_refused_before_any_work(args, message
     assert message in err, err
     assert len(err.strip().splitlines()) == 1, err  # the refusal alone: no line of work first
     assert not (tmp_path / "out").exists()
+
+
+# -- what goi view writes: inside --out, atomic, recorded, nothing left that blocks ---------
+
+
+@pytest.fixture(scope="module")
+def demo_answer(tmp_path_factory):
+    pytest.importorskip("viser")
+    from tests.view.served import demo_session
+
+    session = demo_session(tmp_path_factory.mktemp("demo") / "out")
+    return session, session.answer("sofa", "lifted_fieldless")
+
+
+def test_a_symlinked_directory_inside_out_is_never_written_through(demo_answer, tmp_path):
+    from stages.core.errors import GoiError
+    from stages.view.cameras import browser_camera
+    from tests.view.served import demo_session
+
+    _, ans = demo_answer
+    session = demo_session(tmp_path / "out")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    session.out.root.mkdir()
+    (session.out.root / ans.prompt.name).symlink_to(elsewhere)
+    for what in ("selection", "subset", "masks"):
+        with pytest.raises(GoiError, match="symbolic link"):
+            session.export(ans, what)
+    (session.out.root / "cameras").symlink_to(elsewhere)
+    cam = browser_camera("b", (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.9, 64, 48)
+    with pytest.raises(GoiError, match="symbolic link"):
+        session.save_camera(cam)
+    assert list(elsewhere.iterdir()) == []
+
+
+def test_an_interrupted_export_leaves_nothing_that_blocks_the_next(
+    demo_answer, tmp_path, monkeypatch
+):
+    import stages.query.lift_files as lift_files
+    from tests.view.served import demo_session
+
+    _, ans = demo_answer
+    session = demo_session(tmp_path / "out")
+    real, calls = lift_files.write_png, []
+
+    def dies(path, image, force=False):  # noqa: ANN001, ANN202
+        calls.append(path)
+        if len(calls) == 3:
+            raise KeyboardInterrupt  # Ctrl-C, or the process killed, half-way
+        real(path, image, force)
+
+    monkeypatch.setattr(lift_files, "write_png", dies)
+    with pytest.raises(KeyboardInterrupt):
+        session.export(ans, "masks")
+    monkeypatch.setattr(lift_files, "write_png", real)
+    d = session.answer_dir(ans) / "masks"
+    assert not d.exists() or not list(d.iterdir())
+    files = session.export(ans, "masks")  # the next export is not blocked
+    assert files and all(f.is_file() for f in files)
+    import json
+
+    listed = json.loads((session.out.root / "goi-view.json").read_text())["files"]
+    assert {str(f.relative_to(session.out.root)) for f in files} <= set(listed)
+
+
+def test_an_export_past_the_budget_is_refused(demo_answer, tmp_path):
+    from stages.core.errors import GoiError
+    from tests.view.served import demo_session
+
+    _, ans = demo_answer
+    session = demo_session(tmp_path / "out", max_out_mib=1)
+    with pytest.raises(GoiError, match="--max-out-mib"):
+        session.export(ans, "invert")  # the scene without the sofa: several MiB
+    assert not session.answer_dir(ans).exists()
+    session.export(ans, "selection")  # small: within it
