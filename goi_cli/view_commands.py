@@ -90,13 +90,23 @@ def view_cmd(field: Path | None, for_seconds: float | None, **kw) -> None:
         err=True,
     )
     try:
-        if for_seconds is None:
-            while True:
-                time.sleep(3600)
-        else:
-            time.sleep(for_seconds)
+        serve_until(time.monotonic() + for_seconds if for_seconds is not None else math.inf)
     finally:
         app.stop()
+
+
+def serve_until(deadline: float) -> None:
+    """Sleep in short steps until `deadline` (time.monotonic()): a Ctrl-C stops the viewer at
+    its next step even when the KeyboardInterrupt was raised, and swallowed, elsewhere
+    (stages.core.interrupts)."""
+    from stages.core.interrupts import check
+
+    while True:
+        check()
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(left, 0.2))
 
 
 def register(group: click.Group) -> None:

@@ -20,11 +20,15 @@ from stages.scene.rotation import quat_to_rotmat, rotmat_to_quat
 
 #: The long side of the mask the viewer renders at the browser's camera.
 MASK_SIDE = 640
+#: The narrowest field of view taken from a browser (radians, about 0.06 degrees); a narrower
+#: one makes a focal length that is not a number a camera file can hold.
+MIN_FOV = 1e-3
 
 
 def render_size(width: int, height: int, side: int = MASK_SIDE) -> tuple[int, int]:
     """(width, height) with the canvas's aspect and the long side `side`."""
-    if width <= 0 or height <= 0:
+    ints = all(isinstance(v, int) and not isinstance(v, bool) for v in (width, height))
+    if not ints or width <= 0 or height <= 0:
         raise GoiError(f"the browser reported a canvas of {width}x{height} pixels")
     s = side / max(width, height)
     return max(1, round(width * s)), max(1, round(height * s))
@@ -44,8 +48,10 @@ def browser_camera(
     position = np.asarray(position, np.float64)
     if not (np.isfinite(wxyz).all() and np.isfinite(position).all() and np.linalg.norm(wxyz)):
         raise GoiError("the browser reported a camera pose that is not finite")
-    if not (0 < fov_y < math.pi):
-        raise GoiError(f"the browser reported a field of view of {fov_y} radians")
+    if not (isinstance(fov_y, int | float) and MIN_FOV <= fov_y <= math.pi - MIN_FOV):
+        raise GoiError(f"the browser reported a field of view of {fov_y!r} radians")
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (width, height)):
+        raise GoiError(f"the browser reported a canvas of {width!r}x{height!r} pixels")
     c2w = quat_to_rotmat(wxyz)
     R = c2w.T
     f = 0.5 * height / math.tan(0.5 * fov_y)

@@ -35,6 +35,7 @@ from typing import Any
 
 from stages.core.errors import GoiError
 from stages.view.access import NEED_TOKEN, Access
+from stages.view.cameras import MIN_FOV
 
 #: The viser versions this wrapper was written against (pyproject.toml pins the same range).
 VISER_RANGE = ((1, 1), (2, 0))
@@ -178,7 +179,7 @@ def _bad_camera(m: Any) -> str | None:
         return "a camera report with a pose that is not finite numbers"
     if not _finite(m.up_direction, 3):
         return "a camera report with an up direction that is not finite numbers"
-    if not (_finite([m.fov, m.near, m.far], 3) and 1e-3 < float(m.fov) < math.pi - 1e-3):
+    if not (_finite([m.fov, m.near, m.far], 3) and MIN_FOV <= m.fov <= math.pi - MIN_FOV):
         return "a camera report with a field of view that is not an angle"
     for v in (m.image_width, m.image_height):
         if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 16384:
@@ -318,7 +319,7 @@ class _OneLine(logging.Handler):
             if record.exc_info and record.exc_info[1] is not None:
                 e = record.exc_info[1]
                 line += f" ({type(e).__name__}: {str(e)[:200]})"
-            self._log(line[:500])
+            self._log(" ".join(line.split())[:500])
         except Exception:  # a log line must never take the server down
             pass
 

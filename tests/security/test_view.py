@@ -7,6 +7,7 @@ viser's page never sends."""
 import urllib.error
 import urllib.request
 
+import numpy as np
 import pytest
 
 from stages.view.access import Access, server_names
@@ -300,3 +301,86 @@ def test_an_export_past_the_budget_is_refused(demo_answer, tmp_path):
         session.export(ans, "invert")  # the scene without the sofa: several MiB
     assert not session.answer_dir(ans).exists()
     session.export(ans, "selection")  # small: within it
+
+
+# -- values a page sends that viser's own page never sends ----------------------------------
+
+
+def test_malformed_values_from_a_page_are_refused_there_and_the_page_goes_on(served, capfd):
+    from viser import _messages
+
+    from tests.view.served import wait_for
+
+    app, url, log = served
+    c = _client(url)
+    try:
+        wait_for(lambda: app.pages, "the page built")
+        page = next(iter(app.pages.values()))
+
+        def send(handle, value):  # noqa: ANN001, ANN202
+            c.send(_messages.GuiUpdateMessage(handle._impl.uuid, {"value": value}))
+
+        def refused(text):  # noqa: ANN001, ANN202
+            wait_for(lambda: text in page.status.content, f"the page says {text!r}")
+            assert "#b00020" in page.status.content  # shown as an error
+
+        send(page.mode_box, "sparkle")
+        refused("highlight: one of tint, isolate, hide")
+        send(page.color_box, [1, 2])
+        refused("tint: three integers")
+        send(page.color_box, [1, 2, 300])
+        refused("tint: three integers")
+        send(page.route_box, "the fastest")
+        refused("route: not one of the routes")
+        send(page.history_box, "an answer never given")
+        refused("history: not one of the answers")
+        send(page.prompt_box, "x" * 5000)  # past any page input: dropped on the wire
+        send(page.color_box, "abc")  # text for a colour: viser's own handler fails on it
+        c.report_camera(fov=1e-308)  # a field of view that is no angle: dropped
+        wait_for(lambda: log.has("input value of over 4096"), "the long value dropped")
+        # the page's state is intact and it goes on
+        assert page.mode == "tint" and tuple(page.color_box.value) != (1, 2, 300)
+        send(page.mode_box, "hide")
+        wait_for(lambda: page.mode == "hide", "a good value taken")
+        cam = page.browser_camera()
+        assert cam is not None and np.isfinite(cam.fx)
+    finally:
+        c.close()
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and not any("Traceback" in line for line in log.lines), err
+
+
+def test_a_swallowed_ctrl_c_still_stops_the_viewer(monkeypatch):
+    """A KeyboardInterrupt raised where it is swallowed (a weakref callback, another library)
+    is recorded by goi's handler: the serving loop stops at its next step, not in an hour."""
+    import math
+
+    import stages.core.interrupts as interrupts
+    from goi_cli.view_commands import serve_until
+
+    monkeypatch.setattr(interrupts, "_pending", True)
+    with pytest.raises(KeyboardInterrupt):
+        serve_until(math.inf)
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_goi_view(tmp_path):
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+
+    from tests.view.served import DEMO
+
+    pytest.importorskip("viser")
+    cmd = [sys.executable, "-m", "goi_cli", "view", "--scene", str(DEMO), "--res-masks",
+           str(DEMO / "res"), "--out", str(tmp_path / "out"), "--port", "0"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+    assert proc.stderr is not None
+    for line in proc.stderr:  # the server is up once it prints its address
+        if re.search(r"goi view: http://", line):
+            break
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=120) == 130

@@ -209,6 +209,7 @@ def test_bad_view_inputs_exit_2_before_serving(fitted, tmp_path, capsys):
     s, run = fitted
     scene = ["--scene", str(s["scene"])]
     (tmp_path / "file").write_text("x")
+    (tmp_path / "e.json").write_text(json.dumps({"a prompt": [1.0, 2.0]}))  # 2 dimensions
     cases = [
         ([], "nothing to answer a prompt with"),
         (
@@ -220,11 +221,16 @@ def test_bad_view_inputs_exit_2_before_serving(fitted, tmp_path, capsys):
         (["--res-masks", str(tmp_path), "--prompts", str(tmp_path / "file")], "file"),
         (["--res-masks", str(tmp_path), "--port", "70000"], "--port"),
         (["--res-masks", str(tmp_path), "--max-splats", "0"], "--max-splats"),
+        (
+            ["--field", str(run / "field.h5"), "--text-embeddings", str(tmp_path / "e.json")],
+            "embeddings of 2 dimensions",
+        ),
     ]
     for args, message in cases:
         assert main(["view", *scene, *args, "--for-seconds", "0.1"]) == 2, args
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err and err.count("goi: error") == 1, err
+        assert len(err.strip().splitlines()) == 1, err  # no line of work before the refusal
 
 
 def test_a_prompts_file_is_checked(tmp_path):
