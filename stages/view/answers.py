@@ -32,7 +32,7 @@ from __future__ import annotations
 import threading
 import time
 import traceback
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -45,6 +45,8 @@ from stages.view.worker import Control, Job, Worker
 #: Seconds an answer waits for another goi process that holds the RES index (goi select's
 #: --index-wait default) before giving up; the page can cancel it sooner.
 INDEX_WAIT_S = 600.0
+#: A page's prompts are counted over this many seconds (--prompts-per-s).
+RATE_WINDOW_S = 10.0
 #: What a page says for a failure that is not the user's (the log has the traceback).
 INTERNAL = "the viewer failed on this request (a bug: its log has the details)"
 
@@ -113,6 +115,7 @@ class _Desk:
     shown: Shown | None = None
     lock: threading.RLock = field(default_factory=threading.RLock)
     exports: int = 0  # exports asked so far (each its own job)
+    asked: deque[float] = field(default_factory=deque)  # when it asked, within RATE_WINDOW_S
 
 
 class History:
@@ -157,14 +160,16 @@ class Answers:
         session: ViewSession,
         worker: Worker,
         log: Callable[[str], None] = lambda message: None,
-        history_bytes: int = 256 << 20,
+        history_bytes: int = 128 << 20,
         max_exports: int = 4,
+        prompts_per_s: float = 2.0,
     ):
         self.session = session
         self.worker = worker
         self.log = log
         self.history = History(history_bytes)
         self.max_exports = max_exports
+        self.prompts_per_s = prompts_per_s
         self._desks: dict[Hashable, _Desk] = {}
         self._lock = threading.Lock()
 
@@ -247,6 +252,7 @@ class Answers:
             why = s.routes().get(route, f"unknown route {route!r}")
             if why is not None:
                 raise GoiError(f"route {route}: {why}")
+            self._count_prompt(page)
         except GoiError as e:
             self.refuse(page, str(e))
             return None
@@ -264,6 +270,22 @@ class Answers:
         control.progress = lambda done, total, what: self._tell(req, "progress", done, total, what)
         self.worker.submit((page, "answer"), lambda c: self._answer_text(req, c), control)
         return req
+
+    def _count_prompt(self, page: Hashable) -> None:
+        desk = self._desk(page)
+        if desk is None:
+            raise GoiError("the page is closed")
+        most = max(1, int(self.prompts_per_s * RATE_WINDOW_S))
+        now = time.monotonic()
+        with desk.lock:
+            while desk.asked and now - desk.asked[0] > RATE_WINDOW_S:
+                desk.asked.popleft()
+            if len(desk.asked) >= most:
+                raise GoiError(
+                    f"prompt: {most} prompts in {RATE_WINDOW_S:.0f} s from this page; wait a "
+                    f"moment (--prompts-per-s {self.prompts_per_s:g})"
+                )
+            desk.asked.append(now)
 
     def pick(self, page: Hashable, key: tuple) -> bool:
         """Show a history entry (again, if it is on display already)."""

@@ -78,7 +78,9 @@ class ViewerApp:
         ]
         self.sent_bytes = int(sum(b.nbytes for b in self.buffers))
         self.worker = Worker(self._job_failed)
-        self.answers = Answers(session, self.worker, self.log, session.run.history_mib << 20)
+        run = session.run
+        self.answers = Answers(session, self.worker, self.log, run.history_mib << 20,
+                               prompts_per_s=run.prompts_per_s)  # fmt: skip
         self.pages: dict[int, Page] = {}
         self.gone: set[int] = set()  # tabs closed while their page was being built
         self.lock = threading.Lock()

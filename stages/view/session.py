@@ -82,8 +82,6 @@ EXPORTS = ("selection", "subset", "invert", "highlight", "masks")
 #: The file in --out that lists what goi view wrote there (path -> SHA-256): a file is only
 #: ever replaced when goi view wrote it and nobody changed it since.
 OWNER = "goi-view.json"
-#: Prompts longer than this are refused (the CLI's own cap, stages.query.prompts).
-MAX_PROMPT = 300
 
 
 @dataclass
@@ -115,7 +113,12 @@ class ViewRun:
     max_message_bytes: Annotated[int, Range(ge=4096, le=64 << 20)] = 256 << 10
     """Largest message a page may send (a prompt, a camera, a setting): bigger ones close
     that page's connection."""
-    history_mib: Annotated[int, Range(ge=1, le=1 << 20)] = 256
+    max_prompt_chars: Annotated[int, Range(ge=1, le=1000)] = 300
+    """Longest prompt a page may ask (characters; the CLI's own cap is 1,000)."""
+    prompts_per_s: Annotated[float, Range(gt=0, le=1000)] = 2.0
+    """Most prompts a page may ask a second, over any 10 s (a burst of 20 then one every
+    0.5 s); one more is refused with a line in that page."""
+    history_mib: Annotated[int, Range(ge=1, le=1 << 20)] = 128
     """Memory for the answer history (MiB): the oldest answers go first when it is full (a
     final answer keeps its selection and what its exports record; a lifted answer of 3M
     Gaussians takes about 55 MiB)."""
@@ -379,8 +382,9 @@ class ViewSession:
 
     def check_prompt(self, text: str) -> str:
         t = check_prompt(text, "prompt")
-        if len(t) > MAX_PROMPT:
-            raise GoiError(f"prompt: {len(t)} characters; the viewer takes at most {MAX_PROMPT}")
+        most = self.run.max_prompt_chars
+        if len(t) > most:
+            raise GoiError(f"prompt: {len(t)} characters; the viewer takes at most {most}")
         return t
 
     def prompt(self, text: str) -> Prompt:

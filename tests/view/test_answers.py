@@ -305,3 +305,43 @@ def test_an_index_replaced_underneath_is_read_again(photographed, res_bundles, t
     again = session.answer("the red box", ROUTE)
     np.testing.assert_array_equal(first.selected, again.selected)
     assert session.answer("the green lamp", ROUTE).final
+
+
+def test_a_page_asking_too_fast_is_refused_there(protocol):
+    _, answers, page = protocol
+    answers.prompts_per_s = 0.5  # 5 in any 10 s
+    for i in range(5):
+        assert answers.ask(1, f"prompt {i}", ROUTE) is not None
+    assert answers.ask(1, "one more", ROUTE) is None
+    assert page.has("failed", "5 prompts in 10 s from this page")
+    answers.open(2, Recorder())  # another page has its own count
+    assert answers.ask(2, "from another page", ROUTE) is not None
+
+
+def test_a_flood_of_prompts_from_four_pages_stays_within_the_memory_bound(protocol):
+    import tracemalloc
+
+    session, answers, _ = protocol
+    answers.history.max_bytes = 16 << 20
+    answers.prompts_per_s = 1e6
+    pages = [1, 2, 3, 4]
+    for p in pages[1:]:
+        answers.open(p, Recorder())
+    big = 2_000_000  # each answer's selection: 2 MB
+
+    def answer(text: str) -> Answer:
+        return Answer(Prompt(text), ROUTE, np.ones(big, bool), "scripted")
+
+    session.answer = lambda text, route, control: answer(text)  # type: ignore[method-assign]
+    tracemalloc.start()
+    try:
+        for i in range(400):  # 800 MB of answers, were they all kept
+            answers.ask(pages[i % 4], f"prompt {i}", ROUTE)
+            if i % 50 == 49:
+                wait_for(lambda: not answers.worker.busy(), "the worker idle")
+        wait_for(lambda: not answers.worker.busy(), "the worker idle")
+        held, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert answers.history.nbytes() <= 16 << 20
+    assert held < (16 << 20) + 4 * big + (4 << 20), held  # the history, each page's answer
