@@ -59,8 +59,8 @@ def view_cmd(field: Path | None, for_seconds: float | None, **kw) -> None:
         import viser  # noqa: F401
     except ImportError:
         raise GoiError(
-            "goi view needs viser: pip install 'goi[view]' (or bash scripts/setup.sh with "
-            "GOI_EXTRAS='[view]')"
+            "goi view needs viser: run it as `bash scripts/goi.sh view ...` from goi's "
+            "repository (which installs it on first use), or pip install 'goi[view]'"
         ) from None
     if for_seconds is not None and not math.isfinite(for_seconds):
         raise GoiError(f"--for-seconds: {for_seconds} is not a finite number of seconds")

@@ -398,6 +398,7 @@ class Page:
         with self.lock:
             self.mode = mode
             self._redraw()
+            self._describe()
 
     def _color_changed(self) -> None:
         value = self.color_box.value
@@ -438,25 +439,34 @@ class Page:
             first = self.shown is None or self.shown.request != shown.request
             self.shown = shown
             self._redraw()
-            if shown.preview:
-                what = (
-                    f"<span style='background:#ffe7a3;padding:0 3px'><b>preview</b></span> "
-                    f"{_e(ans.label)}: not the answer yet"
-                )
-            else:
-                src = " (from the history)" if shown.source == "history" else ""
-                what = f"<b>answer</b>: {_e(ans.label)}{src}"
-            self._say(
-                f"<i>{_e(ans.prompt.text)}</i><br><b>{ans.count:,}</b> Gaussians &middot; {what}"
-                f"<br><span style='color:#555'>highlight: {_e(self.mode)} &middot; "
-                f"{ans.seconds:.2f} s</span>"
-            )
+            self._describe()
             self.fly_button.visible = ans.count > 0
         self.client.flush()
         self.shown_at = time.perf_counter()
         if ans.count and (first or not shown.preview) and not self._in_view(ans.selected):
             self.fly_to_answer()  # nothing of it in view: frame it
         self._mask_wanted()
+
+    def _describe(self) -> None:
+        """The status line of the answer on display: its prompt, its count, whether it is a
+        preview or the answer, and the highlight mode."""
+        shown = self.shown
+        if shown is None:
+            return
+        ans = shown.answer
+        if shown.preview:
+            what = (
+                f"<span style='background:#ffe7a3;padding:0 3px'><b>preview</b></span> "
+                f"{_e(ans.label)}: not the answer yet"
+            )
+        else:
+            src = " (from the history)" if shown.source == "history" else ""
+            what = f"<b>answer</b>: {_e(ans.label)}{src}"
+        self._say(
+            f"<i>{_e(ans.prompt.text)}</i><br><b>{ans.count:,}</b> Gaussians &middot; {what}"
+            f"<br><span style='color:#555'>highlight: {_e(self.mode)} &middot; "
+            f"{ans.seconds:.2f} s</span>"
+        )
 
     def progress(self, done: int, total: int, what: str) -> None:
         self.bar.visible = True

@@ -98,7 +98,7 @@ def framing(
     dist = float(np.linalg.norm(away))
     if dist < 1e-9:  # the camera stands in the middle of the selection: step back along it
         away, dist = -np.asarray(best.R, np.float64)[2], 1.0
-    fit = radius / math.tan(0.5 * min(max(fov_y, 0.1), 3.0)) * 1.3
+    fit = radius / math.tan(0.5 * min(max(fov_y, 0.1), 3.0)) * 1.8  # a margin around it
     position = middle + away / dist * min(dist, fit)
     # a view straight down the up axis has no defined roll: lift the eye a little
     if abs(float(np.dot(away / dist, up))) > 0.99:
