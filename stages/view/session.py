@@ -326,7 +326,9 @@ class ViewSession:
         else:
             self.rast = Rasterizer.from_gaussians(scene.gaussians)
         # prompt after prompt lifts the same training views and renders the same cameras
-        self.rast.keep_views(KEEP_VIEWS_BYTES, scene.views("all"))
+        self.view_cache_bytes = KEEP_VIEWS_BYTES
+        self.rast.keep_views(self.view_cache_bytes, scene.views("all"))
+        self._view_cache_fitted = False
         self.report = report
 
     # -- what the inputs allow ------------------------------------------------------------
@@ -467,6 +469,29 @@ class ViewSession:
 
     # -- answering ------------------------------------------------------------------------
 
+    def fit_view_cache(self) -> list[Camera]:
+        """The cameras whose projections and tiles the rasteriser keeps, made to fit its
+        budget (once, at the first answer). Its cache drops the least recently used view, so
+        when not every view fits, a lifted answer's pass over the views (the next one it needs
+        is always the one dropped) would find none kept; keeping only the training views that
+        fit, measured on one of them, gives every later answer those views for free."""
+        cams = self.scene.views("all")
+        if self._view_cache_fitted:
+            return cams
+        self._view_cache_fitted = True
+        train = self.scene.views("train") or cams
+        r = self.rast
+        probe = Rasterizer(r.means, r.quats, r.scales, r.opacities, r.sh, r.valid)
+        probe.keep_views(1 << 62, [train[0]])
+        probe.prepare(train[0])
+        probe.view(train[0])
+        per_view = max(probe.kept_bytes(), 1)
+        if per_view * len(cams) <= self.view_cache_bytes:
+            return cams  # every view fits: nothing is ever dropped
+        fit = train[: self.view_cache_bytes // per_view]
+        self.rast.keep_views(self.view_cache_bytes, fit)
+        return fit
+
     def cached_plane(self, prompt: str) -> Hyperplane | None:
         """The prompt's OSH from OUT/hyperplanes.h5, when it was fitted on this field."""
         path = self.out.root / "hyperplanes.h5"
@@ -511,6 +536,7 @@ class ViewSession:
         prompt = self.prompt(text)
         t0 = time.perf_counter()
         report = ControlReport(control)
+        self.fit_view_cache()
         with self._index_in_use():
             if route in ("osh", "threshold"):
                 ans = self._paper_answer(prompt, route, report)

@@ -282,3 +282,38 @@ def test_every_file_goi_view_writes_is_recorded(room, tmp_path):
     with pytest.raises(GoiError, match="not written by goi view"):
         _session(room, other).answer(PROMPT, "osh")
     assert (other / "hyperplanes.h5").read_text() == "mine"
+
+
+@pytest.mark.slow
+def test_the_view_cache_serves_an_answers_pass_when_not_every_view_fits(
+    room, tmp_path, monkeypatch
+):
+    """The rasteriser keeps views' projections least recently used first: a pass over more
+    views than fit would find none kept. The viewer keeps only the views that fit, so the next
+    answer projects only the others."""
+    import stages.render.rasterizer as rasterizer
+    from stages.render.rasterizer import Rasterizer
+
+    s, run, root = room
+    session = _session(room, tmp_path / "view", field=False)
+    train = session.scene.views("train")
+    r = session.rast
+    probe = Rasterizer(r.means, r.quats, r.scales, r.opacities, r.sh, r.valid)
+    probe.keep_views(1 << 62, [train[0]])
+    probe.prepare(train[0])
+    probe.view(train[0])
+    session.view_cache_bytes = int(3.5 * probe.kept_bytes())  # 3 of the views fit
+    session.rast.keep_views(session.view_cache_bytes, session.scene.views("all"))
+    assert len(session.fit_view_cache()) == 3 < len(train)
+    session.answer("object 1", "lifted_fieldless")
+    projected = []
+    real = rasterizer.project
+
+    def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        projected.append(args[-1].name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(rasterizer, "project", counted)
+    session.answer(PROMPT, "lifted_fieldless")
+    lifted = [v for v in projected if v in {c.name for c in train}]
+    assert lifted and not {c.name for c in train[:3]} & set(lifted)
