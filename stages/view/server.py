@@ -12,7 +12,8 @@ Two small, documented interventions close that:
    arguments, its `process_request` wrapped by goi's check (`stages.view.access`: Host, Origin,
    token; the cap on pages), its message size capped, and each accepted connection's `recv`
    wrapped so that a frame that is not a viser message (or a camera report that is not a
-   camera) is dropped with one log line instead of ending the connection with a traceback.
+   camera, an input update that is not a value) is dropped with one log line instead of ending
+   the connection with a traceback. Refusals are logged, at most `LOG_LINES` a minute.
    Nothing else in the process sees the wrapper, and it is removed as soon as viser has bound
    its port. If viser stops calling `serve` this way (an upgrade), `serve()` finds its guard
    unused and refuses to start: it never serves unguarded (tests/view/test_access.py).
@@ -41,6 +42,8 @@ from stages.view.cameras import MIN_FOV
 VISER_RANGE = ((1, 1), (2, 0))
 
 _BUILD_LOCK = threading.Lock()  # one ViserServer built at a time: the wrapper is per build
+#: Refusals logged a minute at most (a flood of bad requests must not flood the log).
+LOG_LINES = 30
 
 
 class Guard:
@@ -56,9 +59,25 @@ class Guard:
         self.access = access
         self.max_pages = max_pages
         self.max_message_bytes = max_message_bytes
-        self.log = log
+        self._log = log
+        self._logged: list[float] = []  # when the lines of the last minute were logged
+        self._quiet_since = 0.0
         self.used = False  # viser called serve() through the guard
         self._pages: weakref.WeakSet[Any] = weakref.WeakSet()  # websockets accepted
+
+    def log(self, line: str) -> None:
+        """A refusal's line, unless LOG_LINES were logged in the last minute."""
+        import time
+
+        now = time.monotonic()
+        self._logged = [t for t in self._logged if now - t < 60]
+        if len(self._logged) >= LOG_LINES:
+            if now - self._quiet_since >= 60:
+                self._quiet_since = now
+                self._log(f"more than {LOG_LINES} refusals a minute: the next are not logged")
+            return
+        self._logged.append(now)
+        self._log(line)
 
     def check(self, connection: Any, request: Any) -> tuple[Any, str | None]:
         """(the refusal to send, or None to go on; the cookie to set on the page)."""

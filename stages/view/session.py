@@ -728,16 +728,3 @@ def _mode(answer: Answer) -> str:
     if answer.lifted is not None:
         return "lifted"
     return "threshold" if answer.route == "threshold" else "hyperplane"
-
-
-def describe(answer: Answer) -> dict:
-    """A JSON-able summary of an answer, for the page and the benchmarks."""
-    return {
-        "prompt": answer.prompt.text,
-        "route": answer.route,
-        "label": answer.label,
-        "count": answer.count,
-        "final": answer.final,
-        "seconds": round(answer.seconds, 4),
-        "views": [answer.views_done, answer.views_total],
-    }

@@ -54,7 +54,7 @@ def serving(session: ViewSession) -> Iterator[tuple[object, str, Log]]:
         app.stop()
 
 
-def wait_for(predicate, what: str, timeout: float = 120.0) -> None:  # noqa: ANN001
+def wait_for(predicate, what: str, timeout: float = 300.0) -> None:  # noqa: ANN001
     """Wait for a state (never for a time): the timeout only ends a test that hangs."""
     end = time.monotonic() + timeout
     while not predicate():
