@@ -256,9 +256,24 @@ class Answers:
         except GoiError as e:
             self.refuse(page, str(e))
             return None
-        req = self._new_request(page, "text", {"text": prompt, "route": route})
+        payload = {"text": prompt, "route": route}
+        return self.request(page, "text", payload, ("text", prompt, route), self._answer_text)
+
+    def request(
+        self,
+        page: Hashable,
+        kind: str,
+        payload: Mapping[str, Any],
+        key: tuple,
+        answer: Callable[[Request, Control], Answer],
+    ) -> Request:
+        """A checked request of any kind (a prompt; later a click, a box, a combination of
+        answers): a new generation of the page; the answer from the history under `key` when
+        it is there, else `answer(request, control)` on the worker (it may deliver previews),
+        waited for patiently, kept in the history and shown."""
+        req = self._new_request(page, kind, payload)
         self.log(f"page {page} asks {req.describe()}")
-        cached = self.history.get(("text", prompt, route))
+        cached = self.history.get(key)
         if cached is not None:
             self.worker.cancel((page, "answer"))
             self._deliver(req, cached, "history")
@@ -268,7 +283,20 @@ class Answers:
         control = Control()
         control.partial = lambda a: self._deliver(req, a, "route")
         control.progress = lambda done, total, what: self._tell(req, "progress", done, total, what)
-        self.worker.submit((page, "answer"), lambda c: self._answer_text(req, c), control)
+
+        def job(control: Control) -> None:
+            t0 = time.perf_counter()
+            ans = self._patiently(req, control, lambda: answer(req, control))
+            control.check()
+            k = self.history.add(ans)
+            self._deliver(req, k, "route")
+            self.log(
+                f"answered {req.describe()}: {k.count:,} Gaussians ({k.label}) in "
+                f"{time.perf_counter() - t0:.2f} s"
+            )
+            self.history_changed()
+
+        self.worker.submit((page, "answer"), job, control)
         return req
 
     def _count_prompt(self, page: Hashable) -> None:
@@ -298,7 +326,7 @@ class Answers:
         self._deliver(req, ans, "history")
         return True
 
-    def _answer_text(self, req: Request, control: Control) -> None:
+    def _answer_text(self, req: Request, control: Control) -> Answer:
         s = self.session
         text, route = req.payload["text"], req.payload["route"]
         if route not in ("threshold", "lifted_fieldless"):
@@ -308,16 +336,7 @@ class Answers:
             if first is not None and first.route == "osh":
                 label = f"the field's cached OSH, first: {first.label}"
                 self._deliver(req, _preview(first, label), "field")
-        t0 = time.perf_counter()
-        ans = self._patiently(req, control, lambda: s.answer(text, route, control))
-        control.check()
-        k = self.history.add(ans)
-        self._deliver(req, k, "route")
-        self.log(
-            f"answered {req.describe()}: {k.count:,} Gaussians ({k.label}) in "
-            f"{time.perf_counter() - t0:.2f} s"
-        )
-        self.history_changed()
+        return s.answer(text, route, control)
 
     def _patiently(self, req: Request, control: Control, compute: Callable[[], Answer]) -> Answer:
         """`compute`, waiting (cancellably, the gate released) while another goi process
