@@ -23,6 +23,13 @@ Figures (seconds, MiB):
                                     received, and the bytes received
   view_scene_send_s_scale, view_scene_send_mib_scale         the same for the scale scene
                                     (GOI_SCALE Gaussians, default 3M; --max-splats 2M drawn)
+  view_rss_over_first_200_prompts_dev_room   the viewer's resident memory after 200 prompts
+                                    (GOI_VIEW_RSS_PROMPTS) from 4 pages on the dev room, each
+                                    a new text answered by the field-free lifted route from the
+                                    RES index, over its memory after the first (target <= 1.5)
+  view_rss_over_first_20_prompts_scale       the same after 20 prompts
+                                    (GOI_VIEW_RSS_SCALE_PROMPTS) on the scale scene, from its
+                                    8 mask files
 """
 
 from __future__ import annotations
@@ -44,7 +51,7 @@ def _serve(session, wait_page: bool = True):  # noqa: ANN001, ANN202
     from stages.view.app import ViewerApp
 
     app = ViewerApp(session)
-    url = app.start().replace("http://", "ws://")
+    url = app.start()
     client = Client(url)
     page = None
     for _ in range(600):
@@ -60,16 +67,58 @@ def _serve(session, wait_page: bool = True):  # noqa: ANN001, ANN202
 def _ask(page, client: Client, prompt: str, route: str, final: bool = True) -> float:  # noqa: ANN001
     """Seconds from Enter (what the page's form calls) to the answer on the page's wire."""
     page.route = route
-    n = len(page.timeline)
+    before = page.shown
     t0 = time.perf_counter()
     page.ask(prompt)
     end = t0 + 600
     while time.perf_counter() < end:
-        done = [(t, a) for t, a in page.timeline[n:] if a.final or not final]
-        if done:
-            return client.first_after(done[0][0]) - t0
+        s = page.shown
+        if s is not None and s is not before and s.answer.prompt.text == prompt:
+            if not final or not s.preview:
+                return client.first_after(page.shown_at) - t0
         time.sleep(0.002)
     raise TimeoutError(f"no answer to {prompt!r}")
+
+
+def rss_mib() -> float:
+    """This process's resident memory (MiB): the viewer runs in it."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmRSS in /proc/self/status")
+
+
+def rss_over_prompts(session, texts: list[str], n: int, route: str, pages: int = 4):  # noqa: ANN001, ANN201
+    """(resident memory after `n` prompts over after the first, both in MiB): the prompts are
+    new texts (`texts` numbered), asked in turn from `pages` pages, each waiting for its
+    answer as a user would (and within --prompts-per-s)."""
+    from stages.view.app import ViewerApp
+
+    app = ViewerApp(session)
+    url = app.start()
+    clients = [Client(url) for _ in range(pages)]
+    try:
+        end = time.perf_counter() + 600
+        while len(app.pages) < pages and time.perf_counter() < end:
+            time.sleep(0.05)
+        if len(app.pages) < pages:
+            raise RuntimeError("the pages never connected")
+        for c in clients:
+            c.settled()
+        ps = list(app.pages.values())
+        first = 0.0
+        for i in range(n):
+            text = f"{texts[i % len(texts)]} {i}"
+            _ask(ps[i % pages], clients[i % pages], text, route)
+            if i == 0:
+                first = rss_mib()
+            if (i + 1) % 20 == 0:
+                _log(f"{i + 1} prompts: {rss_mib():.0f} MiB (after the first: {first:.0f} MiB)")
+        return rss_mib() / first, first
+    finally:
+        for c in clients:
+            c.close()
+        app.stop()
 
 
 def suite_view(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
@@ -98,7 +147,7 @@ def suite_view(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[s
     # the scene sent to a page, then the field's answers
     session = ViewSession(
         scene, field, PromptSources(text_embeddings=room / "text_embeddings.json"),
-        ViewRun(out=tmp / "view-field"),
+        ViewRun(out=tmp / "view-field", port=0),
     )  # fmt: skip
     app, client, page = _serve(session)
     last, nbytes = client.settled()
@@ -133,7 +182,7 @@ def suite_view(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[s
     session = ViewSession(
         scene, field, PromptSources(text_embeddings=room / "text_embeddings.json",
                                     bundle=bundle_dir, res_index=index),
-        ViewRun(out=tmp / "view-lifted"),
+        ViewRun(out=tmp / "view-lifted", port=0),
     )  # fmt: skip
     app, client, page = _serve(session)
     client.settled()
@@ -155,8 +204,26 @@ def suite_view(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[s
     out["view_lifted_over_cli"] = (
         out["view_lifted_answer_s_dev_room"] / out["cli_lifted_prompt_s_dev_room"]
     )
+    out.update(_rss_dev_room(scene, bundle_dir, index, texts, tmp))
     out["loadavg_1min_end"] = loadavg()
     return out
+
+
+def _rss_dev_room(scene, bundle_dir: Path, index: Path, texts: list[str], tmp: Path):  # noqa: ANN001, ANN202
+    from stages.query.pipeline import PromptSources
+    from stages.view.session import ViewRun, ViewSession
+
+    n = int(os.environ.get("GOI_VIEW_RSS_PROMPTS", "200"))
+    _log(f"resident memory over {n} prompts from 4 pages, dev room")
+    session = ViewSession(
+        scene, None, PromptSources(bundle=bundle_dir, res_index=index),
+        ViewRun(out=tmp / "view-rss", port=0),
+    )  # fmt: skip
+    ratio, first = rss_over_prompts(session, texts, n, "lifted_fieldless")
+    return {
+        f"view_rss_over_first_{n}_prompts_dev_room": ratio,
+        "view_rss_after_first_prompt_mib_dev_room": first,
+    }
 
 
 def _dev_field(room: Path, scene, tmp: Path) -> Path:  # noqa: ANN001
@@ -211,8 +278,17 @@ def _scale_send(tmp: Path) -> dict[str, float]:
     save_ply(d / "point_cloud.ply", v, force=True)
     write_inria(d / "cameras.json", ring_cameras(8, 1237, 822))
     (d / "masks").mkdir()
+    from stages.core.artifacts import write_png
+    from stages.query.prompts import view_file_name
+
+    for cam in ring_cameras(8, 1237, 822):  # a disc in the middle of each view: an object
+        yy, xx = np.mgrid[: cam.height, : cam.width]
+        disc = (xx - cam.width / 2) ** 2 + (yy - cam.height / 2) ** 2 < (cam.height / 5) ** 2
+        write_png(d / "masks" / f"{view_file_name(cam.name)}.png", disc.astype(np.uint8) * 255)
     scene = load_scene(d)
-    session = ViewSession(scene, None, PromptSources(res_masks=d / "masks"), ViewRun(out=d / "o"))
+    session = ViewSession(
+        scene, None, PromptSources(res_masks=d / "masks"), ViewRun(out=d / "o", port=0)
+    )
     t = time.perf_counter()
     app, client, _ = _serve(session)
     prepare = client.t_open - t
@@ -225,4 +301,9 @@ def _scale_send(tmp: Path) -> dict[str, float]:
     }
     client.close()
     app.stop()
+    n_rss = int(os.environ.get("GOI_VIEW_RSS_SCALE_PROMPTS", "20"))
+    _log(f"resident memory over {n_rss} prompts from 4 pages, the scale scene")
+    ratio, first = rss_over_prompts(session, ["the disc"], n_rss, "lifted_fieldless")
+    out[f"view_rss_over_first_{n_rss}_prompts_scale"] = ratio
+    out["view_rss_after_first_prompt_mib_scale"] = first
     return out

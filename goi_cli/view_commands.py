@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import ipaddress
+import math
 import time
 from pathlib import Path
 
@@ -12,16 +12,14 @@ from goi_cli.options import EXISTING, build, dataclass_options, load_scene_from,
 from goi_cli.report import TERMINAL
 from stages.core.errors import GoiError
 from stages.query.pipeline import PromptSources
+from stages.view.access import is_loopback
 from stages.view.session import ViewRun
 
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
+#: What anyone who reaches a non-loopback --host (and has the page's address) gets.
+EXPOSED = (
+    "the scene's Gaussians, every training photo, the prompts and answers of every page, and "
+    "the right to ask prompts and write exports into --out"
+)
 
 
 @click.command("view", short_help="Ask prompts and see the answers in 3D, in the browser.")
@@ -51,7 +49,9 @@ def view_cmd(field: Path | None, for_seconds: float | None, **kw) -> None:
     --camera-file` writes for it ("Save camera" writes such a file). Answers stay in a
     history; exports (selection.h5, PLYs, the test views' masks) go under --out.
 
-    Binds 127.0.0.1 by default; needs `pip install 'goi[view]'`.
+    Binds 127.0.0.1 by default and prints the page's address with a secret token: only a
+    page opened from it, at the server's own origin, is served (--no-token drops the token on
+    a trusted machine). Needs `pip install 'goi[view]'`.
     """
     from stages.view.session import ViewSession
 
@@ -59,18 +59,24 @@ def view_cmd(field: Path | None, for_seconds: float | None, **kw) -> None:
         import viser  # noqa: F401
     except ImportError:
         raise GoiError(
-            "goi view needs viser: pip install 'goi[view]' (or bash scripts/setup.sh with "
-            "GOI_EXTRAS='[view]')"
+            "goi view needs viser: run it as `bash scripts/goi.sh view ...` from goi's "
+            "repository (which installs it on first use), or pip install 'goi[view]'"
         ) from None
+    if for_seconds is not None and not math.isfinite(for_seconds):
+        raise GoiError(f"--for-seconds: {for_seconds} is not a finite number of seconds")
     run = build(ViewRun, kw)
+    from stages.view.server import servable_port
+
+    servable_port(run.host, run.port)  # before any work: the page must be servable
     sources = build(PromptSources, kw)
     scene = load_scene_from(kw)
     session = ViewSession(scene, field, sources, run, TERMINAL)
     session.default_route()  # refuses inputs that can answer nothing, before serving
     if not is_loopback(run.host):
+        who = "anyone" if run.no_token else "anyone with the page's address (its token)"
         click.echo(
-            f"goi: warning: serving on {run.host}: anyone who can reach port {run.port} can "
-            "ask prompts and write exports into --out",
+            f"goi: warning: serving on {run.host}: {who} who can reach the port gets {EXPOSED}; "
+            "the traffic is not encrypted",
             err=True,
         )
     from stages.view.app import ViewerApp
@@ -84,13 +90,23 @@ def view_cmd(field: Path | None, for_seconds: float | None, **kw) -> None:
         err=True,
     )
     try:
-        if for_seconds is None:
-            while True:
-                time.sleep(3600)
-        else:
-            time.sleep(for_seconds)
+        serve_until(time.monotonic() + for_seconds if for_seconds is not None else math.inf)
     finally:
         app.stop()
+
+
+def serve_until(deadline: float) -> None:
+    """Sleep in short steps until `deadline` (time.monotonic()): a Ctrl-C stops the viewer at
+    its next step even when the KeyboardInterrupt was raised, and swallowed, elsewhere
+    (stages.core.interrupts)."""
+    from stages.core.interrupts import check
+
+    while True:
+        check()
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(left, 0.2))
 
 
 def register(group: click.Group) -> None:

@@ -288,10 +288,14 @@ def _both(a: DemoAnswer) -> list[tuple[str, QueryResult, float | None, float | N
 
 
 def view_command(res: DemoResult) -> str:
-    """The `goi view` command that shows the demo's answers in the browser."""
+    """The `goi view` command that shows the demo's answers in the browser, as it runs from
+    here: through scripts/goi.sh, which installs the view extra (viser) on its first use, when
+    goi runs from its repository; else `goi view` (after `pip install 'goi[view]'`)."""
     scene = _shown(DEMO_SCENE)
+    script = DEMO_SCENE.parents[1] / "scripts" / "goi.sh"
+    program = f"bash {_shown(script)} view" if script.is_file() else "goi view"
     return (
-        f"goi view --scene {scene} --field {_shown(res.field)} --text-embeddings "
+        f"{program} --scene {scene} --field {_shown(res.field)} --text-embeddings "
         f"{scene}/text_embeddings.json --res-masks {scene}/res --prompts {scene}/prompts.json "
         f"--out {_shown(res.field.parent / 'view')}"
     )

@@ -1,22 +1,22 @@
 """`goi view`'s front end on viser: the scene as splats, the training cameras, a prompt box,
 and the answers lit up in 3D while they refine.
 
-Every page (browser tab) has its own controls, highlight and answer on display; the answer
-history, the exports and the worker are shared by all pages (`stages.view.worker`: one queue,
-a new prompt from a page supersedes that page's unfinished one). All text a user typed is
-escaped wherever it is shown. viser is imported here only (the optional extra `goi[view]`).
+Every page (browser tab) has its own controls, highlight, camera and answer on display; what a
+page asks and is shown follows the answer protocol (`stages.view.answers`), which also keeps
+the shared history; all answers and exports run on one worker (`stages.view.worker`). Every
+value a page sends is checked before it is used, as a CLI option is: a bad one is refused with
+a line in that page, which goes on. All text a user typed is escaped wherever it is shown.
+viser is imported here and in `stages.view.server` only (the optional extra `goi[view]`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import html
-import io
-import sys
 import threading
 import time
 import traceback
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -24,17 +24,24 @@ import numpy as np
 from stages.core.errors import GoiError
 from stages.core.report import SILENT, Report
 from stages.scene.cameras import Camera
-from stages.view.cameras import MASK_SIDE, browser_camera, browser_pose, render_size
-from stages.view.session import ROUTE_NAMES, ROUTES, Answer, Control, ViewSession
+from stages.view.answers import INTERNAL, Answers, Shown
+from stages.view.cameras import MASK_SIDE, browser_camera, browser_pose, framing, render_size
+from stages.view.session import ROUTE_NAMES, ViewSession
 from stages.view.splats import MODES, Plan, pack, plan, scene_splats
 from stages.view.worker import Job, Worker
 
 #: The camera has rested when it has not moved for this long (seconds): then the mask at it
 #: is rendered.
 REST_S = 0.3
+#: A page's mask at its camera is rendered at most this often (seconds) while its answer
+#: refines; a final answer or a camera that rested gets its mask as soon as it can.
+PREVIEW_MASK_S = 2.0
 #: The side of the photos shown for a training camera.
 PHOTO_SIDE = 480
 TINT = np.array([1.0, 0.0, 0.55], np.float32)  # magenta: stands out in most scenes
+#: A preview (a step before the final answer) is drawn in this colour whatever the tint, so
+#: that it never looks like a final answer.
+PREVIEW_TINT = np.array([1.0, 0.72, 0.0], np.float32)  # amber
 EXPORT_BUTTONS = {
     "selection.h5": "selection",
     "PLY: the selection": "subset",
@@ -42,6 +49,7 @@ EXPORT_BUTTONS = {
     "PLY: the scene, it highlighted": "highlight",
     "masks of the test views": "masks",
 }
+NONE = "-"
 
 
 def _e(text: object) -> str:
@@ -70,10 +78,14 @@ class ViewerApp:
         ]
         self.sent_bytes = int(sum(b.nbytes for b in self.buffers))
         self.worker = Worker(self._job_failed)
+        run = session.run
+        self.answers = Answers(session, self.worker, self.log, run.history_mib << 20,
+                               prompts_per_s=run.prompts_per_s)  # fmt: skip
         self.pages: dict[int, Page] = {}
         self.gone: set[int] = set()  # tabs closed while their page was being built
         self.lock = threading.Lock()
         self.server: Any = None
+        self._unquiet: Callable[[], None] = lambda: None
         cams = session.scene.cameras
         self.up = scene_up(cams)
         means = np.asarray(g.means, np.float64)
@@ -85,16 +97,24 @@ class ViewerApp:
     # -- serving ------------------------------------------------------------------------------
 
     def start(self) -> str:
-        import viser
+        """Serve; returns the page's address (with the run's token unless --no-token)."""
+        from stages.view.access import Access, new_token, server_names
+        from stages.view.server import Guard, quiet_libraries, servable_port, serve
 
         # a tab closed while its answer or mask was on the way: nothing is lost, say nothing
         warnings.filterwarnings("ignore", message="Queued a .* on a closed connection")
 
         run = self.session.run
-        with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: goi prints its own
-            self.server = viser.ViserServer(host=run.host, port=run.port, verbose=False)
+        port = servable_port(run.host, run.port)
+        self.access = Access(None if run.no_token else new_token(), server_names(run.host))
+        guard = Guard(self.access, run.max_pages, run.max_message_bytes, self.log)
+        self._unquiet = quiet_libraries(self.log)
+        self.server = serve(run.host, port, guard, self._share_refused)
         srv = self.server
-        srv.gui.configure_theme(control_width="large", show_logo=False, dark_mode=False)
+        srv.gui.configure_theme(
+            control_width="medium", show_logo=False, show_share_button=False, dark_mode=False
+        )
+        srv.gui.main_panel.dock_right()  # beside the scene, not over it
         srv.scene.set_up_direction(tuple(self.up))
         first = (self.session.scene.views("train") or self.session.scene.cameras)[0]
         wxyz, pos, fov = browser_pose(first)
@@ -103,11 +123,16 @@ class ViewerApp:
         back = pos - fwd * 3.0 * self.frustum_scale
         srv.initial_camera.position = tuple(back)
         srv.initial_camera.look_at = tuple(back + fwd * 0.25 * self.extent)
+        srv.initial_camera.up = tuple(self.up)
         srv.initial_camera.fov = fov
+        srv.initial_camera.near = 0.002 * self.extent
         self._add_cameras()
         srv.on_client_connect(self._connect)
         srv.on_client_disconnect(self._disconnect)
-        return f"http://{_url_host(srv.get_host())}:{srv.get_port()}"
+        token = self.access.token
+        host = _url_host(run.host)
+        self.log(f"serving {self.session.scene.ply_path.parent.name} on {host}:{srv.get_port()}")
+        return f"http://{host}:{srv.get_port()}/" + (f"?token={token}" if token else "")
 
     def stop(self) -> None:
         self.worker.stop()
@@ -116,8 +141,19 @@ class ViewerApp:
         for p in pages:
             p.close()
         if self.server is not None:
+            import contextlib
+            import io
+
             with contextlib.redirect_stdout(io.StringIO()):
                 self.server.stop()
+        self._unquiet()
+
+    def log(self, message: str) -> None:
+        """One line in the viewer's log (the terminal): prompts, answers, exports, refusals."""
+        self.report.log(f"view: {message}")
+
+    def _share_refused(self) -> None:
+        self.log("refused a page's request to publish the viewer on the internet (Share)")
 
     def _add_cameras(self) -> None:
         train = {c.name for c in self.session.scene.views("train")}
@@ -141,7 +177,7 @@ class ViewerApp:
         with self.lock:
             page = self.pages.get(client_id)
         if page is not None:
-            getattr(page, what)(*args)
+            page.guarded(getattr(page, what), *args)
 
     def _connect(self, client: Any) -> None:
         page = Page(self, client)
@@ -159,56 +195,47 @@ class ViewerApp:
                 self.pages[client.client_id] = page
         if gone:
             page.close()
+        else:
+            self.log(f"page {page.id} opened")
 
     def _disconnect(self, client: Any) -> None:
         with self.lock:
             page = self.pages.pop(client.client_id, None)
             if page is None:  # still being built: _connect closes it
                 self.gone.add(client.client_id)
-        self.worker.cancel(client.client_id)
         if page is not None:
             page.close()
-
-    def history_changed(self) -> None:
-        with self.lock:
-            pages = list(self.pages.values())
-        for p in pages:
-            p.refresh_history()
+            self.log(f"page {page.id} closed")
 
     def _job_failed(self, job: Job, e: BaseException) -> None:
-        owner = job.owner[0] if isinstance(job.owner, tuple) else job.owner
-        if isinstance(e, GoiError):
-            message = str(e)
-        else:
-            traceback.print_exception(e, file=sys.stderr)
-            message = f"internal error: {type(e).__name__}: {str(e)[:200]}"
-        self._page_do(owner, "failed", message)
+        self.answers.failed(job, e)
 
 
 class Page:
-    """One browser tab: its controls, its highlight and the answer it shows."""
+    """One browser tab: its controls, its highlight and the answer it shows (a `Display` of
+    the answer protocol)."""
 
     def __init__(self, app: ViewerApp, client: Any):
         self.app = app
         self.client = client
         self.id: int = client.client_id
         self.lock = threading.RLock()
-        self.answer: Answer | None = None
+        self.shown: Shown | None = None
+        self.shown_at = 0.0  # time.perf_counter() when the answer on display was sent
         self.mode = "tint"
         self.color = TINT.copy()
         self.route = app.session.default_route()
-        self.shown: list[bytes] = [b"base"] * len(app.chunks)
+        self.drawn: list[bytes] = [b"base"] * len(app.chunks)
         self.scene_visible = True
         self.chunk_nodes: list[Any] = []
         self.overlay_node: Any = None
         self.closed = threading.Event()
         self.built = threading.Event()  # its controls and splats exist: answers can be shown
-        self.camera_moved = threading.Event()
+        self.wake = threading.Event()  # the mask loop has something to look at
         self.last_move = 0.0
-        self.history_keys: dict[str, tuple[str, str]] = {}
-        #: (time.perf_counter(), answer) of every answer shown, once its messages were flushed
-        #: to the page (the benchmarks time Enter to highlight from it)
-        self.timeline: list[tuple[float, Answer]] = []
+        self.mask_key: tuple = ()  # the camera and answer of the mask on display
+        self.history_keys: dict[str, tuple] = {}
+        self.route_names: dict[str, str] = {}
         self.mask_thread = threading.Thread(target=self._mask_loop, daemon=True)
 
     # -- building the page --------------------------------------------------------------------
@@ -229,15 +256,19 @@ class Page:
             self.prompt_box = gui.add_text("Prompt", "", hint="Type a prompt and press Enter")
             ask = gui.add_button("Ask", hint="Answer the prompt (or press Enter)")
         ask.on_click(lambda _: form.submit())
-        form.on_submit(lambda _: self.ask(self.prompt_box.value))
+        form.on_submit(lambda _: self.guarded(self.ask, self.prompt_box.value))
+        self.suggest = None
         if s.suggestions():
-            self.suggest = gui.add_dropdown("Examples", ["-", *s.suggestions()], initial_value="-")
-            self.suggest.on_update(lambda _: self._suggested())
+            self.suggest = gui.add_dropdown(
+                "Examples", [NONE, *s.suggestions()], initial_value=NONE
+            )
+            self.suggest.on_update(lambda _: self.guarded(self._suggested))
         allowed = [r for r, why in s.routes().items() if why is None]
+        self.route_names = {ROUTE_NAMES[r]: r for r in allowed}
         self.route_box = gui.add_dropdown(
-            "Route", [ROUTE_NAMES[r] for r in allowed], initial_value=ROUTE_NAMES[self.route]
+            "Route", list(self.route_names), initial_value=ROUTE_NAMES[self.route]
         )
-        self.route_box.on_update(lambda _: self._route_changed())
+        self.route_box.on_update(lambda _: self.guarded(self._route_changed))
         closed = [(r, why) for r, why in s.routes().items() if why is not None]
         if closed:
             rows = "".join(
@@ -245,34 +276,40 @@ class Page:
                 for r, why in closed
             )
             gui.add_html(f"<div style='font-size:0.8em'>{rows}</div>")
-        self.mode_box = gui.add_button_group("Highlight", list(MODES))
-        self.mode_box.on_click(lambda ev: self.set_mode(ev.target.value))
-        self.color_box = gui.add_rgb("Tint", tuple(int(255 * c) for c in TINT))
-        self.color_box.on_update(lambda _: self._color_changed())
         self.status = gui.add_html(self._status_html("Ask a prompt to light up its Gaussians."))
         self.bar = gui.add_progress_bar(0.0, visible=False)
-        self.history_box = gui.add_dropdown("History", ["-"], initial_value="-")
-        self.history_box.on_update(lambda _: self._history_picked())
+        self.fly_button = gui.add_button(
+            "Fly to the answer", hint="Frame the answer on display", visible=False
+        )
+        self.fly_button.on_click(lambda _: self.guarded(self.fly_to_answer))
+        self.mode_box = gui.add_dropdown("Highlight", list(MODES), initial_value=self.mode)
+        self.mode_box.on_update(lambda _: self.guarded(self._mode_changed))
+        self.color_box = gui.add_rgb("Tint", tuple(int(255 * c) for c in TINT))
+        self.color_box.on_update(lambda _: self.guarded(self._color_changed))
+        self.history_box = gui.add_dropdown("History", [NONE], initial_value=NONE)
+        self.history_box.on_update(lambda _: self.guarded(self._history_picked))
+        blank = np.zeros((*render_size(4, 3)[::-1], 3), np.uint8)
+        # the photo of the camera last clicked: near the top, shown once there is one
+        self.photo_note = gui.add_html(self._small("Click a camera in the scene for its photo."))
+        self.photo = gui.add_image(blank, format="jpeg", jpeg_quality=85, visible=False)
         with gui.add_folder("At this camera (goi's renderer)"):
-            blank = np.zeros((*render_size(4, 3)[::-1], 3), np.uint8)
             self.mask_image = gui.add_image(blank, format="jpeg", jpeg_quality=85)
             self.mask_note = gui.add_html(self._small("Rest the camera to render the mask here."))
             save = gui.add_button("Save camera", hint="Write this camera as a camera file "
                                   "for goi render-mask --camera-file")  # fmt: skip
-            save.on_click(lambda _: self.save_camera())
+            save.on_click(lambda _: self.guarded(self.save_camera))
         with gui.add_folder("Export the answer", expand_by_default=False):
             for label, what in EXPORT_BUTTONS.items():
                 b = gui.add_button(label)
-                b.on_click(lambda _, what=what: self.export(what))
-            self.export_note = gui.add_html(self._small(f"Into {_e(s.out)}/"))
-        with gui.add_folder("Training photo", expand_by_default=False) as self.photo_folder:
-            self.photo = gui.add_image(blank, format="jpeg", jpeg_quality=85)
-            self.photo_note = gui.add_html(self._small("Click a camera in the scene."))
+                b.on_click(lambda _, what=what: self.guarded(self.export, what))
+            self.export_note = gui.add_html(self._small(f"Into {_e(s.out.root)}/"))
         self._send_scene()
         self.client.camera.on_update(lambda _: self._camera_moved())
+        self._keep_in_the_room()
+        self.app.answers.open(self.id, self)
         self.mask_thread.start()
         self.built.set()
-        self.refresh_history()
+        self.history_changed()
 
     def _send_scene(self) -> None:
         app = self.app
@@ -288,6 +325,16 @@ class Page:
                 )
             )
 
+    def _keep_in_the_room(self) -> None:
+        """The orbit stays at the scene's scale: the camera is never dollied further from the
+        point it orbits than a third of the scene, nor closer than a thousandth of it."""
+        cam, extent = self.client.camera, self.app.extent
+        try:
+            cam.max_orbit_distance = max(0.35 * extent, 1e-6)
+            cam.min_orbit_distance = max(1e-3 * extent, 1e-9)
+        except (AssertionError, ValueError):  # no camera reported yet: the defaults stay
+            pass
+
     @staticmethod
     def _small(text: str) -> str:
         return f"<div style='font-size:0.8em;color:#555'>{text}</div>"
@@ -299,100 +346,166 @@ class Page:
 
     def close(self) -> None:
         self.closed.set()
-        self.camera_moved.set()
+        self.wake.set()
         self.built.set()  # an answer waiting for the page to be built sees it closed
+        self.app.answers.close(self.id)
 
-    # -- asking ---------------------------------------------------------------------------------
-
-    def ask(self, text: str) -> None:
-        s = self.app.session
+    def guarded(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Run a page's callback: a GoiError is a refusal (a line in the page); anything else
+        is a bug, logged with its traceback, and the page says so and goes on."""
+        if self.closed.is_set():
+            return
         try:
-            prompt = s.check_prompt(text)
+            fn(*args)
         except GoiError as e:
-            self.failed(str(e))
-            return
-        route = self.route
-        cached = s.cached(prompt, route)
-        if cached is not None:
-            self.app.worker.cancel(self.id)
-            self.show(cached, note=" (from the history)")
-            return
-        self._say(f"answering <i>{_e(prompt)}</i> ({_e(ROUTE_NAMES[route])})...")
-        self._progress(0, 1)
-        control = Control()
-        control.partial = self.show
-        control.progress = lambda done, total, what: self._progress(done, total)
+            self.app.answers.refuse(self.id, str(e))
+        except Exception as e:
+            self.app.log(f"page {self.id}: {type(e).__name__}: {str(e)[:200]}")
+            self.app.log("".join(traceback.format_exception(e)).rstrip())
+            self.failed(INTERNAL)
 
-        def job(control: Control) -> None:
-            if route not in ("threshold", "lifted_fieldless"):  # (threshold is the field's)
-                first = s.field_answer(prompt)
-                if first is not None:
-                    label = f"the field, first: {first.label}"
-                    self.show(
-                        Answer(first.prompt, first.route, first.selected, label, False, first.plane)
-                    )
-            ans = s.answer(prompt, route, control)
-            control.check()
-            self.show(ans)
-            self.app.history_changed()
+    # -- what the page sends, checked ---------------------------------------------------------
 
-        self.app.worker.submit(self.id, job, control)
+    def ask(self, text: object) -> None:
+        if not isinstance(text, str):
+            raise GoiError("prompt: not text")
+        self.app.answers.ask(self.id, text, self.route)
 
     def _suggested(self) -> None:
+        assert self.suggest is not None
         value = self.suggest.value
-        if value != "-":
-            self.prompt_box.value = value
-            self.ask(value)
+        if value == NONE:
+            return
+        if value not in self.app.session.suggestions():
+            self.suggest.value = NONE
+            raise GoiError("examples: not one of the examples")
+        self.prompt_box.value = value
+        self.suggest.value = NONE  # picking the same example again asks it again
+        self.ask(value)
 
     def _route_changed(self) -> None:
-        by_name = {ROUTE_NAMES[r]: r for r in ROUTES}
-        self.route = by_name.get(self.route_box.value, self.route)
+        route = self.route_names.get(self.route_box.value)
+        if route is None:
+            self.route_box.value = ROUTE_NAMES[self.route]
+            raise GoiError("route: not one of the routes this viewer offers")
+        self.route = route
+
+    def _mode_changed(self) -> None:
+        mode = self.mode_box.value
+        if mode not in MODES:
+            self.mode_box.value = self.mode
+            raise GoiError(f"highlight: one of {', '.join(MODES)}")
+        with self.lock:
+            self.mode = mode
+            self._redraw()
+            self._describe()
+
+    def _color_changed(self) -> None:
+        value = self.color_box.value
+        ok = (
+            isinstance(value, tuple)
+            and len(value) == 3
+            and all(isinstance(v, int) and 0 <= v <= 255 for v in value)
+        )
+        if not ok:
+            self.color_box.value = tuple(int(round(255 * c)) for c in self.color)
+            raise GoiError("tint: three integers from 0 to 255")
+        with self.lock:
+            self.color = np.asarray(value, np.float32) / 255.0
+            self._redraw()
 
     def _history_picked(self) -> None:
-        key = self.history_keys.get(self.history_box.value)
-        if key is None:
+        value = self.history_box.value
+        if value == NONE:
             return
-        ans = self.app.session.cached(*key)
-        if ans is not None and ans is not self.answer:
-            self.app.worker.cancel(self.id)
-            self.show(ans, note=" (from the history)")
+        key = self.history_keys.get(value)
+        self.history_box.value = NONE  # picking the same entry again shows it again
+        if key is None:
+            raise GoiError("history: not one of the answers in the history")
+        ans = self.app.answers.history.get(key)
+        if ans is not None:
+            self.prompt_box.value = ans.prompt.text
+        self.app.answers.pick(self.id, key)
 
-    def refresh_history(self) -> None:
-        answers = self.app.session.history()
-        keys = {}
-        for a in answers:
-            keys[f"{a.prompt.text} · {ROUTE_NAMES[a.route]} · {a.count:,}"] = a.key
-        with self.lock:
-            self.history_keys = keys
-            current = self.history_box.value
-            self.history_box.options = ["-", *keys]
-            if current in keys:
-                self.history_box.value = current
+    # -- what the answer protocol tells the page (a Display) ----------------------------------
 
-    # -- showing --------------------------------------------------------------------------------
-
-    def show(self, ans: Answer, note: str = "") -> None:
-        """Light the answer up in 3D and say what answered it (a partial or final answer)."""
+    def show(self, shown: Shown) -> None:
+        """Light the answer up in 3D and say what it is (a preview, or the final answer)."""
         self.built.wait()
+        ans = shown.answer
         with self.lock:
             if self.closed.is_set():
                 return
-            self.answer = ans
-            self._apply(ans.selected)
-            done = note if ans.final else " (refining...)"
-            self._say(
-                f"<b>{ans.count:,}</b> Gaussians &middot; <span>{_e(ans.label)}</span>{done}<br>"
-                f"<i>{_e(ans.prompt.text)}</i> &middot; {ans.seconds:.2f} s"
-            )
-            if ans.final:
-                self.bar.visible = False
+            first = self.shown is None or self.shown.request != shown.request
+            self.shown = shown
+            self._redraw()
+            self._describe()
+            self.fly_button.visible = ans.count > 0
         self.client.flush()
-        self.timeline.append((time.perf_counter(), ans))
-        self.camera_moved.set()  # the mask at the camera shows the new answer
+        self.shown_at = time.perf_counter()
+        if ans.count and (first or not shown.preview) and not self._in_view(ans.selected):
+            self.fly_to_answer()  # nothing of it in view: frame it
+        self._mask_wanted()
 
-    def _apply(self, selected: np.ndarray | None) -> None:
+    def _describe(self) -> None:
+        """The status line of the answer on display: its prompt, its count, whether it is a
+        preview or the answer, and the highlight mode."""
+        shown = self.shown
+        if shown is None:
+            return
+        ans = shown.answer
+        if shown.preview:
+            what = (
+                f"<span style='background:#ffe7a3;padding:0 3px'><b>preview</b></span> "
+                f"{_e(ans.label)}: not the answer yet"
+            )
+        else:
+            src = " (from the history)" if shown.source == "history" else ""
+            what = f"<b>answer</b>: {_e(ans.label)}{src}"
+        self._say(
+            f"<i>{_e(ans.prompt.text)}</i><br><b>{ans.count:,}</b> Gaussians &middot; {what}"
+            f"<br><span style='color:#555'>highlight: {_e(self.mode)} &middot; "
+            f"{ans.seconds:.2f} s</span>"
+        )
+
+    def progress(self, done: int, total: int, what: str) -> None:
+        self.bar.visible = True
+        self.bar.value = 100.0 * done / max(total, 1)
+
+    def note(self, text: str) -> None:
+        self._say(_e(text))
+
+    def failed(self, message: str) -> None:
+        with self.lock:
+            self._say(_e(message), error=True)
+
+    def idle(self) -> None:
+        self.bar.visible = False
+
+    def exported(self, message: str, error: bool) -> None:
+        color = "#b00020" if error else "#555"
+        self.export_note.content = f"<div style='font-size:0.8em;color:{color}'>{_e(message)}</div>"
+
+    def history_changed(self) -> None:
+        keys = {}
+        for a in self.app.answers.history.answers():
+            keys[f"{a.prompt.text} · {ROUTE_NAMES[a.route]} · {a.count:,}"] = a.key
+        with self.lock:
+            self.history_keys = keys
+            self.history_box.options = [NONE, *keys]
+            self.history_box.value = NONE
+
+    # -- drawing ------------------------------------------------------------------------------
+
+    def _redraw(self) -> None:
+        shown = self.shown
+        selected = shown.answer.selected if shown is not None else None
+        color = PREVIEW_TINT if shown is not None and shown.preview else self.color
+        self._apply(selected, color)
+
+    def _apply(self, selected: np.ndarray | None, color: np.ndarray) -> None:
         app = self.app
-        p: Plan = plan(app.splats, app.chunks, self.shown, selected, self.mode, self.color)
+        p: Plan = plan(app.splats, app.chunks, self.drawn, selected, self.mode, color)
         with self.client.atomic():
             for i, words in p.chunk_words.items():
                 buf = app.buffers[i].copy()
@@ -406,89 +519,66 @@ class Page:
                 self.overlay_node.remove()
                 self.overlay_node = None
             if p.overlay.size:
-                self.overlay_node = self._overlay(p.overlay, p.overlay_tinted)
-        self.shown = p.chunk_keys
+                self.overlay_node = self._overlay(p.overlay, p.overlay_tinted, color)
+        self.drawn = p.chunk_keys
 
-    def _overlay(self, idx: np.ndarray, tinted: bool) -> Any:
+    def _overlay(self, idx: np.ndarray, tinted: bool, color: np.ndarray) -> Any:
         from stages.view.splats import covariances, highlighted
 
         g = self.app.session.scene.gaussians
         rgb = g.colors_dc()[idx].astype(np.float32)
         op = np.asarray(g.opacities[idx], np.float32)[:, None]
         if tinted:
-            rgb, op = highlighted(rgb, op, np.ones(idx.size, bool), "tint", self.color)
+            rgb, op = highlighted(rgb, op, np.ones(idx.size, bool), "tint", color)
         covs = covariances(g.quats[idx], g.scales[idx])
         return self.client.scene.add_gaussian_splats(
             "/selection", centers=g.means[idx], covariances=covs, rgbs=rgb, opacities=op
         )
 
-    def set_mode(self, mode: str) -> None:
-        with self.lock:
-            self.mode = mode
-            self._apply(self.answer.selected if self.answer else None)
-
-    def _color_changed(self) -> None:
-        with self.lock:
-            self.color = np.asarray(self.color_box.value, np.float32) / 255.0
-            self._apply(self.answer.selected if self.answer else None)
-
     def _say(self, text: str, error: bool = False) -> None:
         self.status.content = self._status_html(text, error)
 
-    def _progress(self, done: int, total: int) -> None:
-        self.bar.visible = True
-        self.bar.value = 100.0 * done / max(total, 1)
-
-    def failed(self, message: str) -> None:
-        with self.lock:
-            self.bar.visible = False
-            self._say(_e(message), error=True)
-
-    # -- the mask at the browser's camera -------------------------------------------------------
-
-    def _camera_moved(self) -> None:
-        self.last_move = time.monotonic()
-        self.camera_moved.set()
+    # -- the camera ---------------------------------------------------------------------------
 
     def browser_camera(self, name: str = "browser") -> Camera | None:
         cam = self.client.camera
         try:
             w, h = render_size(cam.image_width, cam.image_height, MASK_SIDE)
             return browser_camera(name, cam.wxyz, cam.position, cam.fov, w, h)
-        except (AssertionError, GoiError):  # no camera reported yet
+        except (AssertionError, GoiError):  # no camera reported yet, or not a camera
             return None
 
-    def _mask_loop(self) -> None:
-        while not self.closed.is_set():
-            self.camera_moved.wait()
-            self.camera_moved.clear()
-            if self.closed.is_set():
-                return
-            while time.monotonic() - self.last_move < REST_S:
-                time.sleep(REST_S / 3)
-            cam = self.browser_camera()
-            if cam is None:
-                continue
-            try:
-                self.render_mask(cam)
-            except Exception as e:  # shown, never fatal to the page
-                self.mask_note.content = self._small(f"could not render: {_e(e)}")
+    def _in_view(self, selected: np.ndarray) -> bool:
+        """Whether any selected Gaussian's centre is in the page's view."""
+        cam = self.browser_camera()
+        if cam is None:
+            return True  # no camera yet: the page's first camera decides
+        means = self.app.session.scene.gaussians.means[selected]
+        with np.errstate(divide="ignore", invalid="ignore"):  # a centre at the eye's depth
+            uv, z = cam.project(np.asarray(means, np.float64))
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width)
+        inside &= (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        return bool(inside.any())
 
-    def render_mask(self, cam: Camera) -> None:
+    def fly_to_answer(self) -> None:
+        shown = self.shown
+        if shown is None or not shown.answer.count:
+            raise GoiError("there is no answer on display to fly to")
         s = self.app.session
-        answer = self.answer
-        t0 = time.perf_counter()
-        with self.app.worker.gate.urgent():
-            mv = s.mask_at(answer, cam)
-        dt = time.perf_counter() - t0
-        self.mask_image.image = mv.overlay
-        what = "no answer yet" if answer is None else f"{int(mv.mask.sum()):,} pixels of the mask"
-        self.mask_note.content = self._small(
-            f"{cam.width}x{cam.height}, {what}, rendered in {dt:.2f} s: what goi render-mask "
-            "--camera-file writes for this camera (Save camera)."
-        )
+        cams = s.scene.views("train") or s.scene.cameras
+        position, middle = framing(
+            shown.answer.selected, s.scene.gaussians.means, cams, self.app.up,
+            float(self.client.camera.fov),
+        )  # fmt: skip
+        self._fly(position, middle)
 
-    # -- cameras, exports -----------------------------------------------------------------------
+    def _fly(self, position: np.ndarray, look_at: np.ndarray, fov: float | None = None) -> None:
+        with self.client.atomic():
+            self.client.camera.up_direction = tuple(self.app.up)
+            if fov is not None:
+                self.client.camera.fov = fov
+            self.client.camera.position = tuple(position)
+            self.client.camera.look_at = tuple(look_at)
 
     def fly_to(self, cam: Camera) -> None:
         wxyz, pos, fov = browser_pose(cam)
@@ -502,41 +592,98 @@ class Page:
             self.photo_note.content = self._small(_e(e))
             return
         self.photo.image = _fit(rgb, PHOTO_SIDE)
-        self.photo_folder.expand_by_default = True
-        self.photo_note.content = self._small(f"{_e(cam.name)} ({cam.width}x{cam.height})")
+        self.photo.visible = True
+        self.photo_note.content = self._small(
+            f"Photo of training camera <b>{_e(cam.name)}</b> ({cam.width}x{cam.height}); the "
+            "page now looks from it"
+        )
+
+    # -- the mask at the page's camera ----------------------------------------------------------
+
+    def _camera_moved(self) -> None:
+        self.last_move = time.monotonic()
+        self.wake.set()
+
+    def _mask_wanted(self) -> None:
+        self.wake.set()
+
+    def _mask_loop(self) -> None:
+        """One render in flight for the page at most; the latest camera and answer win; a
+        camera and answer whose mask is on display already cost nothing."""
+        last_render = 0.0
+        while not self.closed.is_set():
+            self.wake.wait()
+            self.wake.clear()
+            while not self.closed.is_set() and time.monotonic() - self.last_move < REST_S:
+                self.closed.wait(REST_S / 3)  # the camera is moving: wait for it to rest
+            if self.closed.is_set():
+                return
+            shown = self.shown
+            preview = shown is not None and shown.preview
+            if preview and time.monotonic() - last_render < PREVIEW_MASK_S:
+                self.closed.wait(PREVIEW_MASK_S - (time.monotonic() - last_render))
+                self.wake.set()  # look again then: the newest answer and camera
+                continue
+            cam = self.browser_camera()
+            if cam is None:
+                continue
+            key = (_pose_key(cam), id(shown.answer) if shown else None)
+            if key == self.mask_key:
+                continue
+            try:
+                self.render_mask(cam, shown)
+            except GoiError as e:
+                self.mask_note.content = self._small(f"could not render: {_e(e)}")
+            except Exception as e:  # a bug: logged, the page goes on
+                self.app.log(f"page {self.id}: the mask: {type(e).__name__}: {str(e)[:200]}")
+                self.mask_note.content = self._small(_e(INTERNAL))
+            self.mask_key = key
+            last_render = time.monotonic()
+
+    def render_mask(self, cam: Camera, shown: Shown | None) -> None:
+        s = self.app.session
+        answer = shown.answer if shown is not None else None
+        t0 = time.perf_counter()
+        with self.app.worker.gate.urgent():
+            mv = s.mask_at(answer, cam)
+        dt = time.perf_counter() - t0
+        self.mask_image.image = mv.overlay
+        what = "no answer yet" if answer is None else f"{int(mv.mask.sum()):,} pixels of the mask"
+        if answer is not None:
+            what += f" of <i>{_e(answer.prompt.text)}</i>" + (
+                " (preview)" if shown and shown.preview else ""
+            )
+        self.mask_note.content = self._small(
+            f"{cam.width}x{cam.height}, {what}, rendered in {dt:.2f} s: what goi render-mask "
+            "--camera-file writes for this camera (Save camera)."
+        )
+
+    # -- saving ---------------------------------------------------------------------------------
 
     def save_camera(self) -> None:
         cam = self.browser_camera()
         if cam is None:
-            self.mask_note.content = self._small("the browser has not reported its camera yet")
-            return
+            raise GoiError("the browser has not reported its camera yet")
         try:
             path = self.app.session.save_camera(cam)
         except GoiError as e:
             self.mask_note.content = self._small(_e(e))
+            self.app.log(f"refused a camera of page {self.id}: {e}")
             return
+        self.app.log(f"page {self.id} saved a camera: {path}")
         self.mask_note.content = self._small(
             f"camera saved: {_e(path)} (goi render-mask --camera-file {_e(path)})"
         )
 
     def export(self, what: str) -> None:
-        ans = self.answer
-        if ans is None or not ans.final:
-            self.export_note.content = self._small("ask a prompt and wait for its answer first")
-            return
         color = "#" + "".join(f"{int(round(255 * c)):02x}" for c in self.color)
-        self.export_note.content = self._small(f"writing {_e(what)}...")
+        if self.app.answers.export(self.id, what, color):
+            self.export_note.content = self._small(f"writing {_e(what)}...")
 
-        def job(control: Control) -> None:
-            try:
-                files = self.app.session.export(ans, what, color)
-            except GoiError as e:
-                self.export_note.content = self._small(_e(e))
-                return
-            where = files[0] if len(files) == 1 else f"{files[0].parent}/ ({len(files)} files)"
-            self.export_note.content = self._small(f"wrote {_e(where)}")
 
-        self.app.worker.submit((self.id, "export"), job, Control())
+def _pose_key(cam: Camera) -> tuple:
+    return (cam.width, cam.height, round(cam.fx, 6), *np.round(cam.R, 6).ravel(),
+            *np.round(cam.t, 6))  # fmt: skip
 
 
 def _fit(rgb: np.ndarray, side: int) -> np.ndarray:
@@ -557,6 +704,8 @@ def _node_name(name: str) -> str:
 
 
 def _url_host(host: str) -> str:
-    if host in ("0.0.0.0", "::", ""):
+    if host in ("0.0.0.0", ""):
         return "127.0.0.1"
+    if host == "::":
+        return "[::1]"
     return f"[{host}]" if ":" in host else host

@@ -10,35 +10,46 @@ route's answer is `goi select`'s for the same inputs bit for bit:
                       fused with the field
     lifted_fieldless  select --lift without --field: the RES masks alone decide
 
-A prompt is answered progressively: first the field's answer (the prompt's cached OSH, else
-the fixed-threshold plane: a lookup per codebook entry, nothing rendered), then the chosen
-route's, which for the lifted routes refines as views are lifted. The browser front end
-(`stages.view.app`) shows what this module computes; the tests drive this module directly.
+The field's answer (the prompt's cached OSH, else the fixed-threshold plane: a lookup per
+codebook entry, nothing rendered) comes at once; the chosen route's refines, for the lifted
+routes, as views are lifted. Which of them a page shows, in which order, and what is kept is
+the answer protocol's (`stages.view.answers`); the browser front end (`stages.view.app`) draws
+it. Every file goi view writes goes through one owned output directory (`stages.core.owned`):
+atomic, recorded in OUT/goi-view.json, inside --out with no symbolic link followed, never over
+a file goi view did not write, within --max-out-mib.
 """
 
 from __future__ import annotations
 
-import threading
+import contextlib
+import dataclasses
+import os
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 
-from stages.core.artifacts import input_digest, sha256_file, write_json
+from stages.core.artifacts import atomic_path, input_digest, sha256_file
 from stages.core.errors import GoiError
-from stages.core.files import check_output_name, make_dir, read_json, refuse_inputs
+from stages.core.files import make_dir, read_json, refuse_inputs
+from stages.core.owned import OwnedDir
 from stages.core.params import AT_LEAST_1, Choice, Range
 from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
-from stages.query.hyperplanes import HyperplaneRun, fit_hyperplane, read_hyperplanes
+from stages.query.hyperplanes import (
+    HyperplaneRun,
+    fit_hyperplane,
+    read_hyperplanes,
+    res_masks_dir,
+)
 from stages.query.lift_answer import LiftedAnswer, RefineParams, rgb_and_selection
 from stages.query.lift_files import answer_prompt, write_lifted_selection, write_masks
-from stages.query.lift_math import LiftParams
-from stages.query.masks import MaskParams, MaskRun, mask_of, overlay, render_masks
+from stages.query.lift_math import LiftParams, ViewEvidence
+from stages.query.masks import MaskParams, MaskRun, mask_files, mask_of, overlay, render_masks
 from stages.query.osh import THRESHOLD, Hyperplane, HyperplaneParams, threshold_plane
 from stages.query.pipeline import PromptSources
 from stages.query.prompts import Prompt, check_prompt, text_embedding
@@ -58,6 +69,7 @@ from stages.scene.formats.inria import write_inria
 from stages.scene.scene import Scene
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.field import Field, load_field_for
+from stages.view.worker import Control
 
 ROUTES = ("osh", "threshold", "lifted", "lifted_fieldless")
 ROUTE_NAMES = {
@@ -70,8 +82,6 @@ EXPORTS = ("selection", "subset", "invert", "highlight", "masks")
 #: The file in --out that lists what goi view wrote there (path -> SHA-256): a file is only
 #: ever replaced when goi view wrote it and nobody changed it since.
 OWNER = "goi-view.json"
-#: Prompts longer than this are refused (the CLI's own cap, stages.query.prompts).
-MAX_PROMPT = 300
 
 
 @dataclass
@@ -81,8 +91,9 @@ class ViewRun:
     (OUT/cameras/) and the prompt cache of the paper's OSH (OUT/hyperplanes.h5, as goi query
     keeps it). Files goi view did not write there are never replaced."""
     host: str = "127.0.0.1"
-    """Address to serve on. Anything but a loopback address lets whoever reaches the port ask
-    prompts and write exports."""
+    """Address to serve on. Anything but a loopback address lets whoever reaches the port and
+    has the page's address (with its token) see the scene, every training photo and every
+    page's prompts, ask prompts and write exports into --out."""
     port: Annotated[int, Range(ge=0, le=65535)] = 8080
     """Port to serve on (0: any free port; a busy port is skipped for the next free one, and
     the address printed is the one served)."""
@@ -92,6 +103,28 @@ class ViewRun:
     route: Annotated[str | None, Choice(ROUTES)] = None
     """The route selected when the page opens (default: lifted where the inputs allow it,
     else lifted_fieldless, else threshold). Every route the inputs allow stays selectable."""
+    no_token: bool = False
+    """Serve the page without the run's secret token in its address (on a trusted machine
+    only: any local user, and any page that guesses the port, can then open it; other sites'
+    pages stay refused by the Origin check)."""
+    max_pages: Annotated[int, Range(ge=1, le=1000)] = 8
+    """Most pages (browser tabs) open at once; another is refused until one closes (each page
+    holds its own copy of the highlight and a mask render)."""
+    max_message_bytes: Annotated[int, Range(ge=4096, le=64 << 20)] = 256 << 10
+    """Largest message a page may send (a prompt, a camera, a setting): bigger ones close
+    that page's connection."""
+    max_prompt_chars: Annotated[int, Range(ge=1, le=1000)] = 300
+    """Longest prompt a page may ask (characters; the CLI's own cap is 1,000)."""
+    prompts_per_s: Annotated[float, Range(gt=0, le=1000)] = 2.0
+    """Most prompts a page may ask a second, over any 10 s (a burst of 20 then one every
+    0.5 s); one more is refused with a line in that page."""
+    history_mib: Annotated[int, Range(ge=1, le=1 << 20)] = 128
+    """Memory for the answer history (MiB): the oldest answers go first when it is full (a
+    final answer keeps its selection and what its exports record; a lifted answer of 3M
+    Gaussians takes about 55 MiB)."""
+    max_out_mib: Annotated[int, Range(ge=1, le=1 << 30)] = 20480
+    """Most of goi view's own files in --out (MiB): an export that would pass it is refused
+    (a PLY of the whole scene is about 250 bytes a Gaussian)."""
     max_splats: Annotated[int, AT_LEAST_1] = 2_000_000
     """Most Gaussians sent to the browser; a bigger scene is sent as its most opaque and
     largest Gaussians (answers are always computed on all of them)."""
@@ -99,7 +132,9 @@ class ViewRun:
 
 @dataclass
 class Answer:
-    """A prompt's answer on one route (or a provisional step of it)."""
+    """A prompt's answer on one route (or a provisional step of it). `kind` says what was
+    asked: "text" (a prompt); other kinds of request (a click, a box, a combination of
+    answers) answer with the same class."""
 
     prompt: Prompt
     route: str
@@ -111,35 +146,67 @@ class Answer:
     seconds: float = 0.0
     views_done: int = 0
     views_total: int = 0
+    kind: str = "text"
 
     @property
     def count(self) -> int:
         return int(self.selected.sum())
 
     @property
-    def key(self) -> tuple[str, str]:
-        return (self.prompt.text, self.route)
+    def key(self) -> tuple[str, str, str]:
+        return (self.kind, self.prompt.text, self.route)
+
+    def nbytes(self) -> int:
+        """The bytes of its arrays (each counted once): what keeping it costs."""
+        arrays: dict[int, np.ndarray] = {}
+        for a in _arrays(self):
+            arrays[id(a)] = a
+        return sum(a.nbytes for a in arrays.values())
 
 
-class Cancelled(Exception):
-    """The answer was superseded (a new prompt from the same page) or the viewer stopped."""
+def _arrays(ans: Answer) -> Iterator[np.ndarray]:
+    yield ans.selected
+    planes = [ans.plane]
+    if ans.lifted is not None:
+        lf = ans.lifted.lifted
+        yield from (lf.selected, lf.evident, lf.S1, lf.S0)
+        if lf.S0_answering is not None:
+            yield lf.S0_answering
+        for e in ans.lifted.evidence:
+            yield from (e.ids, e.s1, e.s0)
+        planes.append(ans.lifted.plane)
+    for p in planes:
+        if p is not None:
+            yield from (p.W, p.scores, p.text)
 
 
 @dataclass
-class Control:
-    """How a running answer talks back: its partial answers and progress, and whether it
-    should stop. `pause` is called between steps (the worker lets an interactive render in)."""
+class SummedEvidence(ViewEvidence):
+    """A view's evidence once its answer is final and kept: the sums its record and exports
+    use (`summary`), not the per-Gaussian arrays (which cost 24 bytes a Gaussian a view)."""
 
-    cancelled: threading.Event = field(default_factory=threading.Event)
-    partial: Callable[[Answer], None] = lambda a: None
-    progress: Callable[[int, int, str], None] = lambda done, total, what: None
-    pause: Callable[[], None] = lambda: None
-    #: Seconds between two partial answers of a lifted route (each costs a vote).
-    partial_every: float = 0.5
+    kept: dict = dataclasses.field(default_factory=dict)
 
-    def check(self) -> None:
-        if self.cancelled.is_set():
-            raise Cancelled()
+    def summary(self) -> dict:
+        return dict(self.kept)
+
+
+def kept(ans: Answer) -> Answer:
+    """The answer as the history keeps it: what it shows and exports, bit for bit, without
+    the per-view evidence arrays or the OSH's fitting share of S0."""
+    if ans.lifted is None:
+        return ans
+    empty_i, empty_f = np.zeros(0, np.int64), np.zeros(0)
+    evidence: list[ViewEvidence] = [
+        SummedEvidence(e.view, empty_i, empty_f, empty_f, e.empty, kept=e.summary())
+        for e in ans.lifted.evidence
+    ]
+    lifted = dataclasses.replace(
+        ans.lifted,
+        lifted=dataclasses.replace(ans.lifted.lifted, S0_answering=None),
+        evidence=evidence,
+    )
+    return dataclasses.replace(ans, lifted=lifted)
 
 
 class ControlReport:
@@ -212,24 +279,23 @@ class ViewSession:
         self.field_path = Path(field_path) if field_path is not None else None
         self.sources = sources
         self.run = run
-        self.out = Path(run.out)
         self.hp = HyperplaneParams()
         self.lp = LiftParams(lift=True)
         if sources.res_masks is not None and sources.res_index is not None:
             raise GoiError("give one of --res-masks DIR or --res-index FILE, not both")
         if sources.prompt_id is not None:
             raise GoiError("--prompt-id: goi view takes many prompts; give --prompts FILE")
-        check_output_name(self.out, "--out")
-        if self.out.exists() and not self.out.is_dir():
-            raise GoiError(f"--out: {self.out} is a file; goi view writes a directory")
+        self.out = OwnedDir(Path(run.out), "goi view", OWNER, "--out", run.max_out_mib << 20,
+                            "--max-out-mib")  # fmt: skip
         inputs = [scene.ply_path, *scene.camera_files, field_path, sources.text_embeddings,
                   sources.bundle, sources.res_masks, sources.res_index, run.prompts]  # fmt: skip
-        refuse_inputs({"--out": [self.out]}, inputs)
+        refuse_inputs({"--out": [self.out.root]}, inputs)
         self.prompt_ids = load_prompt_table(run.prompts) if run.prompts else {}
         self.bundle: Bundle | None = load_bundle(sources.bundle) if sources.bundle else None
         self.index: GrowingIndex | None = None
+        self._index_seen: tuple[int, ...] | None = None
         if sources.res_index is not None:  # a lifted answer indexes the views it lacks
-            self.index = growing_index(sources.res_index, sources.bundle, scene, report)
+            self.index = self._open_index()
             self.bundle = self.index.bundle
         elif self.bundle is not None and self.bundle.has_res:
             self.bundle.check_res()
@@ -238,11 +304,21 @@ class ViewSession:
         if run.route is not None and self.routes()[run.route] is not None:
             raise GoiError(f"--route: {run.route} is not possible here: {self.routes()[run.route]}")
         self.default_route()  # inputs that can answer nothing are refused before the field loads
+        if sources.text_embeddings is not None:  # read once: a bad file is refused now
+            from stages.query.prompts import load_text_embeddings
+
+            self.embeddings = load_text_embeddings(sources.text_embeddings)
         self.field: Field | None = None
         self.renderer: SemanticRenderer | None = None
         if self.field_path is not None:
-            report.log(f"view: loading the field {self.field_path}")
             self.field = load_field_for(self.field_path, scene.ply_digest())
+            if sources.text_embeddings is not None:
+                dim = next(iter(self.embeddings.values())).size
+                if dim != self.field.codebook.shape[1]:
+                    raise GoiError(
+                        f"{sources.text_embeddings}: embeddings of {dim} dimensions, the field's "
+                        f"codebook {self.field.codebook.shape[1]}; they must share one space"
+                    )
             self.renderer = SemanticRenderer(scene.gaussians, self.field)
             self.rast = self.renderer.rast
             # each Gaussian's codebook entry, once: a field answer is then a lookup per entry
@@ -250,22 +326,10 @@ class ViewSession:
         else:
             self.rast = Rasterizer.from_gaussians(scene.gaussians)
         # prompt after prompt lifts the same training views and renders the same cameras
-        self.rast.keep_views(KEEP_VIEWS_BYTES, scene.views("all"))
-        if sources.text_embeddings is not None:  # read once: a bad file is refused now
-            from stages.query.prompts import load_text_embeddings
-
-            self.embeddings = load_text_embeddings(sources.text_embeddings)
-            if self.field is not None:
-                dim = next(iter(self.embeddings.values())).size
-                if dim != self.field.codebook.shape[1]:
-                    raise GoiError(
-                        f"{sources.text_embeddings}: embeddings of {dim} dimensions, the field's "
-                        f"codebook {self.field.codebook.shape[1]}; they must share one space"
-                    )
-        self._history: dict[tuple[str, str], Answer] = {}
-        self._order: list[tuple[str, str]] = []
-        self._lock = threading.Lock()
-        self._owner_lock = threading.Lock()
+        self.view_cache_bytes = KEEP_VIEWS_BYTES
+        self.rast.keep_views(self.view_cache_bytes, scene.views("all"))
+        self._view_cache_fitted = False
+        self.report = report
 
     # -- what the inputs allow ------------------------------------------------------------
 
@@ -320,8 +384,9 @@ class ViewSession:
 
     def check_prompt(self, text: str) -> str:
         t = check_prompt(text, "prompt")
-        if len(t) > MAX_PROMPT:
-            raise GoiError(f"prompt: {len(t)} characters; the viewer takes at most {MAX_PROMPT}")
+        most = self.run.max_prompt_chars
+        if len(t) > most:
+            raise GoiError(f"prompt: {len(t)} characters; the viewer takes at most {most}")
         return t
 
     def prompt(self, text: str) -> Prompt:
@@ -367,11 +432,71 @@ class ViewSession:
             "no RES source: give --res-masks, --res-index with --bundle, or a bundle with a RES"
         )
 
+    # -- the RES index: grown by this process, replaced by others -------------------------
+
+    def _open_index(self) -> GrowingIndex:
+        src = self.sources
+        assert src.res_index is not None
+        # wait=0: a lock held by another process is waited for by the answer protocol, which
+        # lets the machine's cores go meanwhile and can be cancelled (stages.view.answers)
+        index = growing_index(src.res_index, self.bundle or src.bundle, self.scene, wait=0)
+        self._index_seen = _identity(src.res_index)
+        return index
+
+    @contextlib.contextmanager
+    def _index_in_use(self) -> Iterator[None]:
+        """Around an answer: the index reopened first when another process replaced it (goi
+        index-res --force), and the views this answer indexed published after it."""
+        if self.index is not None:
+            assert self.sources.res_index is not None
+            if _identity(self.sources.res_index) != self._index_seen:
+                self.index = self._open_index()
+        try:
+            yield
+        finally:
+            if self.index is not None:
+                self.index.close()  # the views indexed so far, kept for the next prompts
+                assert self.sources.res_index is not None
+                self._index_seen = _identity(self.sources.res_index)
+
+    def index_lock_path(self) -> Path | None:
+        return self.sources.res_index
+
+    def reopen_index(self) -> None:
+        """Read the index again (it changed while an answer read it)."""
+        if self.index is not None:
+            self.index = self._open_index()
+
+    # -- answering ------------------------------------------------------------------------
+
+    def fit_view_cache(self) -> list[Camera]:
+        """The cameras whose projections and tiles the rasteriser keeps, made to fit its
+        budget (once, at the first answer). Its cache drops the least recently used view, so
+        when not every view fits, a lifted answer's pass over the views (the next one it needs
+        is always the one dropped) would find none kept; keeping only the training views that
+        fit, measured on one of them, gives every later answer those views for free."""
+        cams = self.scene.views("all")
+        if self._view_cache_fitted:
+            return cams
+        self._view_cache_fitted = True
+        train = self.scene.views("train") or cams
+        r = self.rast
+        probe = Rasterizer(r.means, r.quats, r.scales, r.opacities, r.sh, r.valid)
+        probe.keep_views(1 << 62, [train[0]])
+        probe.prepare(train[0])
+        probe.view(train[0])
+        per_view = max(probe.kept_bytes(), 1)
+        if per_view * len(cams) <= self.view_cache_bytes:
+            return cams  # every view fits: nothing is ever dropped
+        fit = train[: self.view_cache_bytes // per_view]
+        self.rast.keep_views(self.view_cache_bytes, fit)
+        return fit
+
     def cached_plane(self, prompt: str) -> Hyperplane | None:
         """The prompt's OSH from OUT/hyperplanes.h5, when it was fitted on this field."""
-        path = self.out / "hyperplanes.h5"
-        if self.field is None or self.field_path is None or not path.is_file():
-            return None
+        path = self.out.root / "hyperplanes.h5"
+        if self.field is None or self.field_path is None or not self.out.owns(path):
+            return None  # (a plane cache goi view did not write is not read)
         plane = read_hyperplanes(path).get(prompt)
         if plane is None or plane.info.get("field_sha256") != self._field_sha:
             return None
@@ -411,15 +536,13 @@ class ViewSession:
         prompt = self.prompt(text)
         t0 = time.perf_counter()
         report = ControlReport(control)
-        if route in ("osh", "threshold"):
-            ans = self._paper_answer(prompt, route, report)
-        else:
-            ans = self._lifted_answer(prompt, route, control, report, t0)
+        self.fit_view_cache()
+        with self._index_in_use():
+            if route in ("osh", "threshold"):
+                ans = self._paper_answer(prompt, route, report)
+            else:
+                ans = self._lifted_answer(prompt, route, control, report, t0)
         ans.seconds = time.perf_counter() - t0
-        with self._lock:
-            if ans.key not in self._history:
-                self._order.append(ans.key)
-            self._history[ans.key] = ans
         return ans
 
     def _paper_answer(self, prompt: Prompt, route: str, report: Report) -> Answer:
@@ -431,12 +554,19 @@ class ViewSession:
                 prompt, route, select(self.field, plane, self.entry), "fixed threshold", True, plane
             )
         masks = self.res(prompt, self.rast)
-        make_dir(self.out, "--out")
-        try:
-            plane, cached = fit_hyperplane(
-                self.renderer, self.field_path, self.scene.views("train"), prompt, text,
-                text_source, masks, self.hp, HyperplaneRun(self.out / "hyperplanes.h5"), report,
+        renderer, field_path = self.renderer, self.field_path
+        planes = self.out.root / "hyperplanes.h5"
+
+        def fit() -> tuple[Hyperplane, bool]:
+            return fit_hyperplane(
+                renderer, field_path, self.scene.views("train"), prompt, text, text_source,
+                masks, self.hp, HyperplaneRun(planes), report,
             )  # fmt: skip
+
+        try:  # the plane cache and the RES masks a model made: goi view's files
+            (plane, cached), _ = self.out.write(
+                fit, expect=[planes], dirs=[res_masks_dir(planes, prompt)]
+            )
         except NothingFound:
             none = np.zeros(self.scene.gaussians.count, bool)
             return Answer(prompt, route, none, "the paper's OSH: the RES found nothing", True)
@@ -467,26 +597,12 @@ class ViewSession:
                 last[0] = time.perf_counter()
 
         every = RefineParams(all_views=True)  # an index that lacks views: indexed as it refines
-        try:
-            ans = answer_prompt(self.scene, renderer, prompt.text, text, masks, self.hp, self.lp,
-                                report, partial=partial, refine=every)  # fmt: skip
-        finally:
-            if self.index is not None:
-                self.index.close()  # the views indexed so far, kept for the next prompts
+        ans = answer_prompt(self.scene, renderer, prompt.text, text, masks, self.hp, self.lp,
+                            report, partial=partial, refine=every)  # fmt: skip
         n = len(ans.views)
         label = f"{ROUTE_NAMES[route]}, {n} views"
         return Answer(prompt, route, ans.selected, label, True, lifted=ans, views_done=n,
                       views_total=n)  # fmt: skip
-
-    # -- history --------------------------------------------------------------------------
-
-    def history(self) -> list[Answer]:
-        with self._lock:
-            return [self._history[k] for k in self._order]
-
-    def cached(self, prompt: str, route: str) -> Answer | None:
-        with self._lock:
-            return self._history.get((prompt, route))
 
     # -- the 2D answer at a camera -------------------------------------------------------
 
@@ -509,11 +625,11 @@ class ViewSession:
     # -- exports --------------------------------------------------------------------------
 
     def answer_dir(self, answer: Answer) -> Path:
-        return self.out / answer.prompt.name / answer.route
+        return self.out.root / answer.prompt.name / answer.route
 
     def export(self, answer: Answer, what: str, color: str = "red") -> list[Path]:
-        """Write one export of a final answer under OUT/<prompt>/<route>/, atomically, with
-        the CLI's artifacts and schemas; a file goi view did not write is never replaced."""
+        """Write one export of a final answer under OUT/<prompt>/<route>/ with the CLI's
+        artifacts and schemas, through the owned output directory (see the module doc)."""
         if what not in EXPORTS:
             raise GoiError(f"export: {what!r} is not one of {', '.join(EXPORTS)}")
         if not answer.final:
@@ -521,22 +637,24 @@ class ViewSession:
         d = self.answer_dir(answer)
         name = answer.prompt.name
         mode = _mode(answer)
+        estimate = 0
         if what == "selection":
             files = [d / "selection.h5"]
         elif what == "masks":
             cams = self.scene.views("test") or self.scene.cameras
-            from stages.query.masks import mask_files
-
             files = mask_files(d / "masks", cams, True)
         else:
             suffix = "" if what == "subset" else f".{what}"
             files = [d / f"{name}{suffix}.ply"]
             if what == "highlight":
                 parse_color(color, "highlight colour")
-        with self._owner_lock:
-            owned = self._owned()
-            for f in files:
-                self._check_owned(f, owned)
+            if what == "subset" and not answer.selected.any():
+                raise GoiError("export: the answer selects no Gaussian; there is no subset")
+            kept = {"subset": answer.count, "invert": answer.selected.size - answer.count}
+            share = kept.get(what, answer.selected.size) / max(answer.selected.size, 1)
+            estimate = int(share * self.scene.ply_path.stat().st_size)
+
+        def write() -> None:
             make_dir(d, "--out")
             if what == "selection":
                 self._write_selection(answer, files[0], mode)
@@ -546,15 +664,12 @@ class ViewSession:
                 edit = PlyEditParams(
                     invert=what == "invert", highlight=color if what == "highlight" else None
                 )
-                if what == "subset" and not answer.selected.any():
-                    raise GoiError("export: the answer selects no Gaussian; there is no subset")
                 sel = Selection(answer.selected, answer.prompt.text, mode, self.scene.ply_digest())
                 export_ply(self.scene.gaussians, sel, self.scene.ply_digest(), edit,
                            PlyExportRun(files[0], force=True))  # fmt: skip
-            for f in files:
-                owned[str(f.relative_to(self.out))] = sha256_file(f)
-            write_json(self.out / OWNER, {"written_by": "goi view", "files": owned}, force=True)
-        return files
+
+        _, written = self.out.write(write, expect=files, estimate=estimate, dirs=[d])
+        return written
 
     def _write_selection(self, answer: Answer, path: Path, mode: str) -> None:
         if answer.lifted is not None:
@@ -575,43 +690,37 @@ class ViewSession:
             return
         write_masks(self.rast, answer.selected, cams, d, True, True)
 
-    def _owned(self) -> dict[str, str]:
-        path = self.out / OWNER
-        if not path.is_file():
-            return {}
-        raw = read_json(path)
-        files = raw.get("files") if isinstance(raw, dict) else None
-        if not isinstance(files, dict):
-            raise GoiError(f"{path}: not goi view's list of the files it wrote")
-        return {str(k): str(v) for k, v in files.items()}
-
-    def _check_owned(self, f: Path, owned: dict[str, str]) -> None:
-        if not (f.exists() or f.is_symlink()):
-            return
-        rel = str(f.relative_to(self.out))
-        if f.is_symlink() or not f.is_file() or owned.get(rel) != sha256_file(f):
-            raise GoiError(
-                f"{f}: exists and was not written by goi view (or was changed since); goi view "
-                "never replaces such a file: move it, or give another --out"
-            )
-
     def save_camera(self, cam: Camera) -> Path:
         """The browser's camera as an INRIA cameras.json under OUT/cameras/, for
         `goi render-mask --camera-file`."""
-        with self._owner_lock:
-            owned = self._owned()
-            d = make_dir(self.out / "cameras", "--out")
+        d = self.out.root / "cameras"
+        c = Camera("", cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cam.R, cam.t)
+        if not all(np.isfinite(v).all() for v in (c.fx, c.fy, c.R, c.t)):
+            raise GoiError("the camera is not finite numbers; it is not saved")
+
+        def write() -> Path:
+            make_dir(d, "--out")
             taken = {p.stem for p in d.glob("*.json")}
             i = 1
             while f"camera-{i:03d}" in taken:
                 i += 1
             name = f"camera-{i:03d}"
             path = d / f"{name}.json"
-            c = Camera(name, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cam.R, cam.t)
-            write_inria(path, [c])
-            owned[str(path.relative_to(self.out))] = sha256_file(path)
-            write_json(self.out / OWNER, {"written_by": "goi view", "files": owned}, force=True)
+            with atomic_path(path) as tmp:
+                write_inria(tmp, [dataclasses.replace(c, name=name)])
+            return path
+
+        path, _ = self.out.write(write, dirs=[d])
         return path
+
+
+def _identity(path: Path) -> tuple[int, ...]:
+    """A file's identity (device, inode, size, modification time); () when it is not there."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return ()
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
 
 
 def _mode(answer: Answer) -> str:
@@ -619,16 +728,3 @@ def _mode(answer: Answer) -> str:
     if answer.lifted is not None:
         return "lifted"
     return "threshold" if answer.route == "threshold" else "hyperplane"
-
-
-def describe(answer: Answer) -> dict:
-    """A JSON-able summary of an answer, for the page and the benchmarks."""
-    return {
-        "prompt": answer.prompt.text,
-        "route": answer.route,
-        "label": answer.label,
-        "count": answer.count,
-        "final": answer.final,
-        "seconds": round(answer.seconds, 4),
-        "views": [answer.views_done, answer.views_total],
-    }

@@ -8,7 +8,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -180,16 +179,17 @@ def test_a_second_process_waits_or_is_refused_and_never_corrupts_the_index(
         assert p.returncode == 2, err
         assert f"is being written by another goi run (pid {os.getpid()})" in err, err
         assert len(err.strip().splitlines()) == 1, err
-        waiting = _goi(*_q(s, idx, bundle, tmp_path / "b", PROMPT, "--index-wait", "120"))
-        deadline = time.time() + 120
-        while time.time() < deadline and waiting.poll() is None:
-            time.sleep(0.5)
-            if (tmp_path / "b").exists():  # its outputs are checked: it is at the index now
-                time.sleep(3)
+        waiting = _goi(*_q(s, idx, bundle, tmp_path / "b", PROMPT, "--index-wait", "600"))
+        assert waiting.stderr is not None
+        said = []
+        for line in waiting.stderr:  # it says so when it meets the lock: wait for that state
+            said.append(line)
+            if "waiting for it" in line:
                 break
-        assert waiting.poll() is None  # still waiting for the lock
+        assert waiting.poll() is None, "".join(said)  # still waiting for the lock
         assert not idx.exists()
-    _, err = waiting.communicate(timeout=300)
+    _, rest = waiting.communicate(timeout=300)
+    err = "".join(said) + rest
     assert waiting.returncode == 0, err
     assert "waiting for it" in err, err
     assert sorted(load_res_index(idx).views) == sorted(s["train"])

@@ -38,7 +38,7 @@ def served(session):
     from stages.view.app import ViewerApp
 
     app = ViewerApp(session)
-    url = app.start().replace("http://", "ws://")
+    url = app.start()
     clients = [Client(url), Client(url)]
     for _ in range(400):
         if len(app.pages) == 2:
@@ -53,14 +53,15 @@ def served(session):
         app.stop()
 
 
-def _final(page, timeout=300):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        done = [a for _, a in page.timeline if a.final]
-        if done:
-            return done[-1]
-        time.sleep(0.05)
-    raise AssertionError("no final answer")
+def _final(page, text):
+    from tests.view.served import wait_for
+
+    def done():
+        s = page.shown
+        return s is not None and not s.preview and s.answer.prompt.text == text
+
+    wait_for(done, f"the final answer to {text!r}", timeout=600)
+    return page.shown.answer
 
 
 @pytest.mark.slow
@@ -70,14 +71,22 @@ def test_two_tabs_asking_at_once_get_their_own_answers(served, session):
     a.route = b.route = "lifted"
     a.ask("object 1")
     b.ask("object 2")
-    ans_a, ans_b = _final(a), _final(b)
-    assert (ans_a.prompt.text, ans_b.prompt.text) == ("object 1", "object 2")
-    np.testing.assert_array_equal(ans_a.selected, session.cached("object 1", "lifted").selected)
-    np.testing.assert_array_equal(ans_b.selected, session.cached("object 2", "lifted").selected)
+    ans_a, ans_b = _final(a, "object 1"), _final(b, "object 2")
+    history = app.answers.history
+    np.testing.assert_array_equal(
+        ans_a.selected, history.get(("text", "object 1", "lifted")).selected
+    )
+    np.testing.assert_array_equal(
+        ans_b.selected, history.get(("text", "object 2", "lifted")).selected
+    )
     assert not np.array_equal(ans_a.selected, ans_b.selected)
     # both pages list both answers in their history
-    for page in (a, b):
-        assert {"object 1", "object 2"} <= {k[0] for k in page.history_keys.values()}
+    from tests.view.served import wait_for
+
+    def listed(page) -> set:
+        return {k[1] for k in page.history_keys.values()}
+
+    wait_for(lambda: all({"object 1", "object 2"} <= listed(p) for p in (a, b)), "the history")
 
 
 @pytest.mark.slow
@@ -87,10 +96,11 @@ def test_a_new_prompt_supersedes_the_pages_unfinished_one(served, session):
     a.route = "lifted"
     a.ask("object 3")
     a.ask("object 4")  # at once: the first is cancelled before or during its lift
-    final = _final(a)
-    assert final.prompt.text == "object 4"
-    time.sleep(0.5)
-    assert all(ans.prompt.text == "object 4" for _, ans in a.timeline if ans.final)
+    _final(a, "object 4")
+    from tests.view.served import wait_for
+
+    wait_for(lambda: not app.worker.busy(), "the worker idle")
+    assert a.shown.answer.prompt.text == "object 4" and not a.shown.preview
 
 
 @pytest.mark.slow
@@ -100,9 +110,9 @@ def test_what_a_user_typed_is_shown_as_text(served):
     typed = "<img src=x onerror=alert(1)> & friends"
     page.route = "threshold"  # the prompt has no embedding: the error names it
     page.ask(typed)
-    end = time.monotonic() + 60
-    while "error" not in page.status.content and time.monotonic() < end:
-        time.sleep(0.05)
+    from tests.view.served import wait_for
+
+    wait_for(lambda: "#b00020" in page.status.content, "the error shown")
     assert html.escape(typed) in page.status.content and "<img" not in page.status.content
 
 

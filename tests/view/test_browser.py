@@ -8,6 +8,7 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -80,7 +81,7 @@ def _canvas(page) -> np.ndarray:
 
     last = None
     for _ in range(60):
-        png = page.screenshot()
+        png = page.screenshot(timeout=180_000)  # a loaded machine draws slowly
         now = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(np.float32)
         if last is not None and np.abs(now - last).mean() < 0.2:
             return now
@@ -102,7 +103,7 @@ def test_a_prompt_typed_in_the_page_lights_up_goi_selects_answer(served, tmp_pat
         box = _prompt_box(page)
         box.fill(PROMPT)
         box.press("Enter")
-        page.get_by_text(re.compile(r"^lifted, field-free, \d+ views$")).wait_for(timeout=180_000)
+        page.get_by_text(re.compile(r"^answer$")).wait_for(timeout=180_000)  # the final one
         after = _canvas(page)
         # the server's selection, through the page's own export button
         page.get_by_text("Export the answer").click()
@@ -112,7 +113,7 @@ def test_a_prompt_typed_in_the_page_lights_up_goi_selects_answer(served, tmp_pat
         page.get_by_text(re.compile("camera saved")).wait_for(timeout=60_000)
         panel = page.get_by_text("goi view", exact=True).bounding_box()
         warning = page.get_by_text("Software WebGL").bounding_box()
-        page.screenshot(path=str(tmp_path / "page.png"))
+        page.screenshot(path=str(tmp_path / "page.png"), timeout=180_000)
         browser.close()
     exported = load_selection(out / safe_name(PROMPT) / "lifted_fieldless" / "selection.h5")
     args = ["--scene", str(DEMO), "--prompt", PROMPT, "--res-masks", str(DEMO / "res"),
@@ -145,3 +146,157 @@ def test_a_prompt_typed_in_the_page_lights_up_goi_selects_answer(served, tmp_pat
     assert inside.size > 2000 and outside.size > 100_000
     assert inside.mean() > 20, inside.mean()
     assert outside.mean() < 0.1 * inside.mean(), (outside.mean(), inside.mean())
+
+
+#: A page of another site that tries to drive the viewer: it opens the viewer's websocket as
+#: viser's own page does (the token too, as if it had leaked) and says in its title whether
+#: the connection opened.
+PROBE = """
+const ws = new WebSocket(%(ws)r, ["viser-v%(version)s"]);
+ws.onopen = () => { document.title = "open"; };
+ws.onclose = () => { if (document.title !== "open") document.title = "refused"; };
+"""
+
+
+def test_a_page_from_another_origin_cannot_connect(tmp_path):
+    import functools
+    import http.server
+    import threading
+
+    import viser
+
+    sync_api = pytest.importorskip("playwright.sync_api")
+    from tests.view.served import demo_session, serving
+
+    with serving(demo_session(tmp_path / "out")) as (app, url, log):
+        ws = url.replace("http://", "ws://")
+        script = PROBE % {"ws": ws, "version": viser.__version__}
+        (tmp_path / "site").mkdir()
+        (tmp_path / "site" / "index.html").write_text(f"<title>-</title><script>{script}</script>")
+        handler = functools.partial(
+            http.server.SimpleHTTPRequestHandler, directory=str(tmp_path / "site")
+        )
+        other = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        threading.Thread(target=other.serve_forever, daemon=True).start()
+        try:
+            with sync_api.sync_playwright() as p:
+                browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+                page = browser.new_page()
+                # the viewer's own page first: its cookie is in this browser now, and the same
+                # script from the page's own origin connects (the probe works)
+                page.goto(url)
+                page.evaluate(f"document.title = '-'; {script}")
+                page.wait_for_function("document.title !== '-'", timeout=60_000)
+                assert page.title() == "open"
+                # another origin on the same machine (same site: the cookie goes with it)
+                page.goto(f"http://127.0.0.1:{other.server_address[1]}/")
+                page.wait_for_function("document.title !== '-'", timeout=60_000)
+                assert page.title() == "refused"
+                browser.close()
+        finally:
+            other.shutdown()
+        assert log.has("refused a websocket from another origin")
+
+
+def _hues(png: np.ndarray) -> tuple[int, int]:
+    """(amber pixels, magenta pixels) of a screenshot's canvas (BGR; the panel left out)."""
+    import cv2
+
+    hsv = cv2.cvtColor(png[:, :940], cv2.COLOR_BGR2HSV).astype(np.int32)
+    h, s, v = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    amber = (h >= 18) & (h <= 30) & (s > 150) & (v > 180)
+    magenta = (h >= 150) & (h <= 172) & (s > 120) & (v > 150)
+    return int(amber.sum()), int(magenta.sum())
+
+
+def test_a_new_user_sees_the_answer_framed_a_preview_apart_the_mode_prompt_and_photo(
+    tmp_path, monkeypatch
+):
+    """The page as a new user needs it, in Chromium, with a screenshot of each state (kept in
+    the test's directory): the preview drawn in amber and labelled, the final answer in the
+    tint and framed (the page flies to it when nothing of it is in view), the prompt of what
+    is shown and the active mode in the panel, a camera's photo at the top of the panel, the
+    log naming prompts and answers; and no console error of goi's making."""
+    import cv2
+
+    sync_api = pytest.importorskip("playwright.sync_api")
+    from tests.view.served import demo_session, serving, wait_for
+
+    session = demo_session(tmp_path / "out")
+    real, first_partial, go_on = session.answer, threading.Event(), threading.Event()
+
+    def answer(text, route, control):  # noqa: ANN001, ANN202
+        """The real answer, held at its first preview until the test has looked at it."""
+        control.partial_every = 0.0
+        inner = control.partial
+
+        def partial(a):  # noqa: ANN001, ANN202
+            inner(a)
+            if not first_partial.is_set():
+                first_partial.set()
+                go_on.wait(300)
+
+        control.partial = partial
+        return real(text, route, control)
+
+    monkeypatch.setattr(session, "answer", answer)
+    shots = tmp_path / "shots"
+    shots.mkdir()
+
+    def shot(page, name: str) -> np.ndarray:  # noqa: ANN001
+        """The page once it has settled (splats fade in), kept as shots/<name>.png."""
+        settled = _canvas(page)
+        cv2.imwrite(str(shots / f"{name}.png"), settled.astype(np.uint8))
+        return settled.astype(np.uint8)
+
+    with serving(session) as (app, url, log):
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            errors = []
+            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.goto(url)
+            box = _prompt_box(page)
+            box.wait_for(timeout=120_000)
+            page.get_by_text("Rest the camera").wait_for(state="detached", timeout=180_000)
+            (viewer,) = app.pages.values()
+            # the orbit stays at the room's scale, about the point it looks at
+            assert viewer.client.camera.max_orbit_distance <= 0.35 * app.extent + 1e-9
+            box.fill("sofa")
+            box.press("Enter")
+            # the preview: amber, labelled as not the answer yet
+            page.get_by_text("not the answer yet").wait_for(timeout=180_000)
+            wait_for(lambda: viewer.shown is not None and viewer.shown.preview, "the preview")
+            preview = shot(page, "1-preview")
+            go_on.set()
+            page.get_by_text(re.compile(r"^answer$")).wait_for(timeout=180_000)
+            wait_for(lambda: not app.worker.busy(), "the answer done")
+            final = shot(page, "2-final")
+            sel = viewer.shown.answer.selected
+            # framed: the page flew to the answer (the sofa is behind the first camera)
+            wait_for(lambda: viewer._in_view(sel), "the answer in view")
+            page.get_by_text("sofa", exact=True).first.wait_for()  # the prompt of what is shown
+            page.get_by_text("highlight: tint").wait_for()
+            # the mode, switched in the page, stays visible
+            page.locator("xpath=//*[text()='Highlight']/following::input[1]").click()
+            page.get_by_role("option", name="isolate").click()
+            page.get_by_text("highlight: isolate").wait_for(timeout=60_000)
+            wait_for(lambda: viewer.mode == "isolate", "isolate")
+            isolated = shot(page, "3-isolate")
+            # a camera's photo, at the top of the panel
+            cam = app.session.scene.views("train")[3]
+            app._page_do(viewer.id, "fly_to", cam)
+            page.get_by_text(f"Photo of training camera {cam.name}").wait_for(timeout=60_000)
+            shot(page, "4-photo")
+            browser.close()
+    (amber_p, magenta_p), (amber_f, magenta_f) = _hues(preview), _hues(final)
+    assert amber_p > 5000 and magenta_p < 200, (amber_p, magenta_p)  # a preview: amber
+    assert magenta_f > 50_000 and amber_f < amber_p / 4, (amber_f, magenta_f)  # the answer
+    drawn = int((isolated[150:, :940] < 230).any(axis=2).sum())
+    assert drawn > 20_000 and max(_hues(isolated)) < 200  # isolate: the sofa, own colours
+    assert any("asks 'sofa'" in line for line in log.lines)
+    assert any("answered 'sofa'" in line for line in log.lines)
+    # viser 1.1.1's own splat mesh has a 2-component position attribute, whose bounding sphere
+    # three.js computes as NaN (an upstream bug); any other error is goi's
+    ours = [e for e in errors if "computeBoundingSphere(): Computed radius is NaN" not in e]
+    assert ours == [], ours

@@ -15,7 +15,8 @@ from stages.query.pipeline import PromptSources
 from stages.query.selection import load_selection
 from stages.scene.images import read_mask
 from stages.scene.scene import load_scene
-from stages.view.session import Cancelled, Control, ViewRun, ViewSession
+from stages.view.session import ViewRun, ViewSession
+from stages.view.worker import Cancelled, Control
 from tests.helpers import write_true_res
 
 OBJ = 2
@@ -114,19 +115,7 @@ def test_cancel_stops_an_answer_between_views(room, tmp_path):
     control.progress = progress
     with pytest.raises(Cancelled):
         session.answer(PROMPT, "lifted", control)
-    assert max(seen) == 2 and session.history() == []
-
-
-@pytest.mark.slow
-def test_history_keeps_every_answer_once(room, tmp_path):
-    session = _session(room, tmp_path / "view", field=False)
-    a = session.answer("object 1", "lifted_fieldless")
-    b = session.answer(PROMPT, "lifted_fieldless")
-    again = session.answer("object 1", "lifted_fieldless")
-    assert [x.key for x in session.history()] == [a.key, b.key]
-    assert session.cached("object 1", "lifted_fieldless") is again
-    np.testing.assert_array_equal(a.selected, again.selected)
-    assert session.cached("object 3", "lifted_fieldless") is None
+    assert max(seen) == 2
 
 
 @pytest.mark.slow
@@ -220,6 +209,7 @@ def test_bad_view_inputs_exit_2_before_serving(fitted, tmp_path, capsys):
     s, run = fitted
     scene = ["--scene", str(s["scene"])]
     (tmp_path / "file").write_text("x")
+    (tmp_path / "e.json").write_text(json.dumps({"a prompt": [1.0, 2.0]}))  # 2 dimensions
     cases = [
         ([], "nothing to answer a prompt with"),
         (
@@ -231,11 +221,16 @@ def test_bad_view_inputs_exit_2_before_serving(fitted, tmp_path, capsys):
         (["--res-masks", str(tmp_path), "--prompts", str(tmp_path / "file")], "file"),
         (["--res-masks", str(tmp_path), "--port", "70000"], "--port"),
         (["--res-masks", str(tmp_path), "--max-splats", "0"], "--max-splats"),
+        (
+            ["--field", str(run / "field.h5"), "--text-embeddings", str(tmp_path / "e.json")],
+            "embeddings of 2 dimensions",
+        ),
     ]
     for args, message in cases:
         assert main(["view", *scene, *args, "--for-seconds", "0.1"]) == 2, args
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err and err.count("goi: error") == 1, err
+        assert len(err.strip().splitlines()) == 1, err  # no line of work before the refusal
 
 
 def test_a_prompts_file_is_checked(tmp_path):
@@ -270,3 +265,55 @@ def test_control_report_stops_when_cancelled():
                 control.cancelled.set()
     assert seen == [0, 1]
     assert isinstance(control.cancelled, threading.Event)
+
+
+@pytest.mark.slow
+def test_every_file_goi_view_writes_is_recorded(room, tmp_path):
+    """The plane cache the paper's route fills is goi view's file like its exports: recorded
+    in goi-view.json, and one goi view did not write is never replaced."""
+    out = tmp_path / "view"
+    session = _session(room, out)
+    session.answer(PROMPT, "osh")
+    listed = json.loads((out / "goi-view.json").read_text())["files"]
+    assert "hyperplanes.h5" in listed
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "hyperplanes.h5").write_text("mine")
+    with pytest.raises(GoiError, match="not written by goi view"):
+        _session(room, other).answer(PROMPT, "osh")
+    assert (other / "hyperplanes.h5").read_text() == "mine"
+
+
+@pytest.mark.slow
+def test_the_view_cache_serves_an_answers_pass_when_not_every_view_fits(
+    room, tmp_path, monkeypatch
+):
+    """The rasteriser keeps views' projections least recently used first: a pass over more
+    views than fit would find none kept. The viewer keeps only the views that fit, so the next
+    answer projects only the others."""
+    import stages.render.rasterizer as rasterizer
+    from stages.render.rasterizer import Rasterizer
+
+    s, run, root = room
+    session = _session(room, tmp_path / "view", field=False)
+    train = session.scene.views("train")
+    r = session.rast
+    probe = Rasterizer(r.means, r.quats, r.scales, r.opacities, r.sh, r.valid)
+    probe.keep_views(1 << 62, [train[0]])
+    probe.prepare(train[0])
+    probe.view(train[0])
+    session.view_cache_bytes = int(3.5 * probe.kept_bytes())  # 3 of the views fit
+    session.rast.keep_views(session.view_cache_bytes, session.scene.views("all"))
+    assert len(session.fit_view_cache()) == 3 < len(train)
+    session.answer("object 1", "lifted_fieldless")
+    projected = []
+    real = rasterizer.project
+
+    def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        projected.append(args[-1].name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(rasterizer, "project", counted)
+    session.answer(PROMPT, "lifted_fieldless")
+    lifted = [v for v in projected if v in {c.name for c in train}]
+    assert lifted and not {c.name for c in train[:3]} & set(lifted)

@@ -13,7 +13,6 @@ from stages.scene.cameras import Camera
 from stages.scene.gaussians import load_ply
 from stages.scene.rotation import quat_to_rotmat
 from stages.view.cameras import browser_camera, browser_pose, render_size
-from stages.view.session import Cancelled, Control
 from stages.view.splats import (
     covariances,
     morton_order,
@@ -22,7 +21,7 @@ from stages.view.splats import (
     rgba_words,
     scene_splats,
 )
-from stages.view.worker import Gate, Worker
+from stages.view.worker import Cancelled, Control, Gate, Worker
 from tests.helpers import random_vertex, write_ply
 
 
@@ -147,6 +146,21 @@ def test_worker_runs_in_order_and_a_page_supersedes_only_its_own_job():
     for j in (a1, b1, a2):
         assert j.done.wait(10)
     assert ran == ["b1", "a2"] and not errors
+    w.stop()
+
+
+def test_a_flood_of_requests_from_a_page_keeps_one_job_of_it():
+    """A page that asks 10,000 times while the worker is busy costs one waiting job, not a
+    queue of cancelled ones (each submit is O(1))."""
+    w = Worker(lambda job, e: None)
+    release = threading.Event()
+    busy = w.submit(0, lambda control: release.wait(30), Control())
+    jobs = [w.submit(1, lambda control: None, Control()) for _ in range(10_000)]
+    assert w.pending(lambda owner: owner == 1) == 1
+    assert all(j.control.cancelled.is_set() and j.done.is_set() for j in jobs[:-1])
+    release.set()
+    assert busy.done.wait(10) and jobs[-1].done.wait(10)
+    assert not jobs[-1].control.cancelled.is_set()
     w.stop()
 
 
