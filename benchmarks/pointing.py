@@ -22,10 +22,9 @@ Figures:
   sam_encoder_s                       baseline: one view's image side, median
   click_fix_gain                      the mean gain in test mIoU from one corrective click on
                                       the five worst text answers on res-sam-correlated/
-                                      (lifted field-free): + on the largest part of the target
-                                      the answer misses, or - on the largest part it wrongly
-                                      takes, whichever is larger, at that part's most interior
-                                      pixel in the training view that shows most of it
+                                      (lifted field-free): + in a part of the target the answer
+                                      misses, or - in a part it wrongly takes, at the pixel of
+                                      any training view deepest inside such a part
 """
 
 from __future__ import annotations
@@ -87,8 +86,12 @@ def _text_answer(scene, rast, res: str, prompt: dict) -> np.ndarray:  # noqa: AN
 
 
 def _fix_click(rast, train, selected: np.ndarray, targets: list[int]):  # noqa: ANN001, ANN202
-    """The corrective click: (view, x, y, positive)."""
-    from stages.query.point_math import interior_points
+    """The corrective click a user makes: at the pixel deepest inside a wrong region (a part of
+    the target the answer misses: +, a part it wrongly takes: -) of any training view, the one
+    farthest from the region's edge (a click in the middle of what is wrong, not on a sliver).
+    (view, x, y, positive)."""
+    import cv2
+
     from stages.render.lift import selection_mask
 
     best = None
@@ -97,13 +100,15 @@ def _fix_click(rast, train, selected: np.ndarray, targets: list[int]):  # noqa: 
         proj, bins = rast.prepare(cam)
         m = selection_mask(proj, bins, selected, cam.width, cam.height)
         for part, positive in ((gt & ~m, True), (m & ~gt, False)):
-            n = int(part.sum())
-            if best is None or n > best[0]:
-                best = (n, cam, part, positive)
+            if not part.any():
+                continue
+            dist = cv2.distanceTransform(np.pad(part.astype(np.uint8), 1), cv2.DIST_L2, 5)
+            dist = dist[1:-1, 1:-1]
+            y, x = np.unravel_index(int(np.argmax(dist)), dist.shape)
+            if best is None or dist[y, x] > best[0]:
+                best = (float(dist[y, x]), cam, int(x), int(y), positive)
     assert best is not None
-    _, cam, part, positive = best
-    (x, y), = interior_points(part, 1)  # fmt: skip
-    return cam, int(x), int(y), positive
+    return best[1:]
 
 
 def suite_click(repeat: int, tmp: Path, median_s: Callable) -> dict[str, float]:
@@ -207,7 +212,7 @@ def suite_click(repeat: int, tmp: Path, median_s: Callable) -> dict[str, float]:
     return out
 
 
-if __name__ == "__main__":  # python benchmarks/click.py: the suite alone
+if __name__ == "__main__":  # python benchmarks/pointing.py: the suite alone
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
