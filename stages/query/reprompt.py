@@ -23,8 +23,8 @@ RES masks are split or silent, not against their majority. At full weight SAM's 
 where it repeats its own mistake in every view (the TV's screen without its frame: the TV on
 the support set 0.894 -> 0.880, at half weight 0.915; the TV cabinet with the TV on it 0.942
 -> 0.915, at half 0.940), and the thin palm gained less at half weight (0.291 -> 0.638 at
-full, 0.550 at half) while no prompt lost more than 0.004. Rounds repeat while the answer changes by more than `settle` of its size,
-at most `refine_rounds`. A view that shows nothing of the answer is not asked (its RES mask
+full, 0.550 at half) while no prompt lost more than 0.004. Rounds repeat while the answer
+changes by more than `refine_settle` of its size, at most `refine_rounds`. A view that shows nothing of the answer is not asked (its RES mask
 already says what it says).
 """
 
