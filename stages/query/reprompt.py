@@ -24,8 +24,8 @@ where it repeats its own mistake in every view (the TV's screen without its fram
 the support set 0.894 -> 0.880, at half weight 0.915; the TV cabinet with the TV on it 0.942
 -> 0.915, at half 0.940), and the thin palm gained less at half weight (0.291 -> 0.638 at
 full, 0.550 at half) while no prompt lost more than 0.004. Rounds repeat while the answer
-changes by more than `refine_settle` of its size, at most `refine_rounds`. A view that shows nothing of the answer is not asked (its RES mask
-already says what it says).
+changes by more than `refine_settle` of its size, at most `refine_rounds`. A view that shows
+nothing of the answer is not asked (its RES mask already says what it says).
 """
 
 from __future__ import annotations
