@@ -85,10 +85,22 @@ def _text_answer(scene, rast, res: str, prompt: dict) -> np.ndarray:  # noqa: AN
     return ans.selected
 
 
-def _fix_click(rast, train, selected: np.ndarray, targets: list[int]):  # noqa: ANN001, ANN202
+def _shown_ids(rast, cam, gid: np.ndarray) -> np.ndarray:  # noqa: ANN001
+    """[H, W] the instance id of the Gaussian goi's render shows most at each pixel (-1: none)."""
+    from stages.render.probe import probe
+
+    proj, bins = rast.prepare(cam)
+    ys, xs = np.mgrid[0 : cam.height, 0 : cam.width]
+    top = probe(proj, bins, np.stack([xs.ravel(), ys.ravel()], 1), cam.width, cam.height).top
+    return np.where(top >= 0, gid[np.maximum(top, 0)], -1).reshape(cam.height, cam.width)
+
+
+def _fix_click(rast, train, selected: np.ndarray, targets: list[int], gid: np.ndarray):  # noqa: ANN001, ANN202
     """The corrective click a user makes: at the pixel deepest inside a wrong region (a part of
     the target the answer misses: +, a part it wrongly takes: -) of any training view, the one
-    farthest from the region's edge (a click in the middle of what is wrong, not on a sliver).
+    farthest from the region's edge (a click in the middle of what is wrong, not on a sliver),
+    where the photo's object (the room's id map) is the one goi's render shows there too (a
+    pixel where they differ by a pixel's misalignment is no place a user clicks to fix).
     (view, x, y, positive)."""
     import cv2
 
@@ -96,10 +108,12 @@ def _fix_click(rast, train, selected: np.ndarray, targets: list[int]):  # noqa: 
 
     best = None
     for cam in train:
-        gt = np.isin(_ids(cam.name), targets)
+        ids = _ids(cam.name)
+        gt = np.isin(ids, targets)
+        agree = _shown_ids(rast, cam, gid) == ids
         proj, bins = rast.prepare(cam)
         m = selection_mask(proj, bins, selected, cam.width, cam.height)
-        for part, positive in ((gt & ~m, True), (m & ~gt, False)):
+        for part, positive in ((gt & ~m & agree, True), (m & ~gt & agree, False)):
             if not part.any():
                 continue
             dist = cv2.distanceTransform(np.pad(part.astype(np.uint8), 1), cv2.DIST_L2, 5)
@@ -202,7 +216,7 @@ def suite_click(repeat: int, tmp: Path, median_s: Callable) -> dict[str, float]:
     answers.sort(key=lambda a: a[0])
     gains = []
     for before, p, sel in answers[:5]:
-        cam, x, y, positive = _fix_click(rast, train, sel, p["targets"])
+        cam, x, y, positive = _fix_click(rast, train, sel, p["targets"], gid)
         fixed = pointer.answer([Click(cam.name, x, y, positive)], [], base=sel)
         after = _test_miou(rast, test, fixed.selected, p["targets"])
         gains.append(after - before)

@@ -39,6 +39,7 @@ from stages.evaluation.metrics import Scores, image_scores, iou_3d, mean_scores,
 from stages.evaluation.report import eval_page, page_files_dir
 from stages.evaluation.room import Prompt, Room, load_room
 from stages.evaluation.variants import (
+    DEFAULT_VARIANTS,
     FIELD_KIND,
     LIFTED,
     VARIANTS,
@@ -118,8 +119,10 @@ class EvalRun:
     res_index: Path | None = None
     """With --bundle: the room's RES index (goi index-res) made with it; only the bundle's
     prompt side runs, on the room's photos, and lifted variants lift every indexed view."""
-    variants: str = ",".join(VARIANTS)
-    """Comma-separated variants to run (lifted is goi's added mode, the others the paper's)."""
+    variants: str = ",".join(DEFAULT_VARIANTS)
+    """Comma-separated variants to run (lifted is goi's added mode, the others the paper's;
+    lifted_refined and lifted_fieldless_refined, which prompt a SAM back, run when named, with
+    --bundle)."""
     seeds: str | None = None
     """With --benchmark: 2 or 3 comma-separated seeds (e.g. 0,1,2) of the codebook, field and
     hyperplane fits; `full` is fitted and answered once per seed (WORK/<scene>/seed-<s>/, the
@@ -645,6 +648,11 @@ def run_eval(
         # the mask files are the RES; the bundle is the SAM the _refined variants prompt back
         bundle, sam_bundle = None, point_bundle(run.bundle)
     else:
+        if refining and run.bundle is None:
+            raise GoiError(
+                f"--variants {','.join(refining)}: these prompt a SAM back from the answer; "
+                "give --bundle DIR with a SAM (a SAM alone from `goi export-model DIR`)"
+            )
         bundle = _res_bundle(res, run.bundle)
         sam_bundle = point_bundle(bundle) if refining else None
     sources: dict[str, ResSource] = {}

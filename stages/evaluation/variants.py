@@ -63,6 +63,9 @@ VARIANTS = (
     "lifted_refined",
     "lifted_fieldless_refined",
 )
+#: The variants goi eval runs unless --variants names others: the _refined ones need a SAM
+#: (--bundle), which a room's eval has not by default.
+DEFAULT_VARIANTS = tuple(v for v in VARIANTS if not v.endswith("_refined"))
 #: The lifted variants; those ending in _refined prompt SAM back from the answer (--refine sam).
 LIFTED = ("lifted", "lifted_fieldless", "lifted_refined", "lifted_fieldless_refined")
 #: Which field each variant needs: "tfcc" (the paper's), "direct" (fit-field --no-tfcc) or

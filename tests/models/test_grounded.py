@@ -159,7 +159,6 @@ def test_bad_checkpoints_are_refused_before_any_export(res_checkpoints, tmp_path
         ([ck["detector"], pickled], ("pickled", "no model.safetensors", "pytorch_model.bin")),
         ([owl, ck["sam"]], ("owl", "no model.safetensors")),
         ([ck["detector"]], ("grounding-dino", "needs a SAM checkpoint")),
-        ([ck["sam"]], ("needs a Grounding DINO or an OWLv2 checkpoint too",)),
         ([ck["detector"], ck["sam"], ck["clipseg"]], ("one RES",)),
         ([ck["clipseg"], ck["clipseg"]], ("both clipseg checkpoints",)),
         ([ck["detector"], wrong], ("wrong", "SAM model reads are missing", "another architecture")),
@@ -172,6 +171,14 @@ def test_bad_checkpoints_are_refused_before_any_export(res_checkpoints, tmp_path
         for word in words:
             assert word in err, err
         assert sorted(p.name for p in tmp_path.iterdir()) == ["owl", "pickled", "wrong"]
+
+
+def test_a_sam_checkpoint_alone_is_a_sam_bundle(res_checkpoints, tmp_path):
+    """A SAM with no detector is no RES: it exports as a SAM alone, for clicks and boxes."""
+    out = tmp_path / "b"
+    assert main(["export-model", str(res_checkpoints["sam"]), "--out", str(out)]) == 0
+    b = load_bundle(out)
+    assert b.has_sam and not b.has_res and b.index_kind == "sam"
 
 
 def test_a_checkpoint_without_tokenizer_json_gets_one_built(tmp_path):

@@ -83,7 +83,7 @@ def test_detector_canvas_is_fixed(res_bundles):
     assert isinstance(shapes["input_ids"][1], str)
     manifest = json.loads((res_bundles["grounded"] / "manifest.json").read_text())
     assert manifest["grounded"]["detector"]["size"] == [W, H]
-    assert manifest["schema_version"] == "1.3"
+    assert manifest["schema_version"] == "1.4"
     assert set(manifest["export_checks"]) == {
         "detector.onnx",
         "sam_encoder.onnx",
