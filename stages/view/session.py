@@ -34,7 +34,7 @@ import numpy as np
 
 from stages.core.artifacts import atomic_path, input_digest, sha256_file
 from stages.core.errors import GoiError
-from stages.core.files import make_dir, read_json, refuse_inputs
+from stages.core.files import make_dir, refuse_inputs
 from stages.core.owned import OwnedDir
 from stages.core.params import AT_LEAST_1, Choice, Range
 from stages.core.report import SILENT, Report
@@ -52,7 +52,14 @@ from stages.query.lift_math import LiftParams, ViewEvidence
 from stages.query.masks import MaskParams, MaskRun, mask_files, mask_of, overlay, render_masks
 from stages.query.osh import THRESHOLD, Hyperplane, HyperplaneParams, threshold_plane
 from stages.query.pipeline import PromptSources
-from stages.query.prompts import Prompt, check_prompt, text_embedding
+from stages.query.prompts import (
+    Prompt,
+    TextEmbeddings,
+    check_prompt,
+    read_prompt_table,
+    read_text_embeddings,
+    text_embedding,
+)
 from stages.query.res import (
     NothingFound,
     ResFiles,
@@ -242,25 +249,6 @@ class MaskView:
     overlay: np.ndarray  # [H, W, 3] uint8, as goi render-mask writes <view>.overlay.png
 
 
-def load_prompt_table(path: Path) -> dict[str, str]:
-    """A room's prompts.json -> {text: id}."""
-    raw = read_json(path, "does not exist (--prompts)")
-    if not isinstance(raw, list):
-        raise GoiError(f"{path}: expected a JSON list of {{id, text}} prompts")
-    table: dict[str, str] = {}
-    for i, p in enumerate(raw):
-        if not (
-            isinstance(p, dict) and isinstance(p.get("id"), str) and isinstance(p.get("text"), str)
-        ):
-            raise GoiError(f"{path}: prompt {i} is not an object with string 'id' and 'text'")
-        text = check_prompt(p["text"], f"{path}: prompt {i} 'text'")
-        from stages.query.prompts import check_plain_name
-
-        check_plain_name(p["id"], f"{path}: prompt {i} 'id'", "a subdirectory of --res-masks")
-        table.setdefault(text, p["id"])
-    return table
-
-
 class ViewSession:
     """Everything loaded and checked once, before the server starts; answers on demand.
 
@@ -290,7 +278,7 @@ class ViewSession:
         inputs = [scene.ply_path, *scene.camera_files, field_path, sources.text_embeddings,
                   sources.bundle, sources.res_masks, sources.res_index, run.prompts]  # fmt: skip
         refuse_inputs({"--out": [self.out.root]}, inputs)
-        self.prompt_ids = load_prompt_table(run.prompts) if run.prompts else {}
+        self.prompt_ids = read_prompt_table(run.prompts) if run.prompts else {}
         self.bundle: Bundle | None = load_bundle(sources.bundle) if sources.bundle else None
         self.index: GrowingIndex | None = None
         self._index_seen: tuple[int, ...] | None = None
@@ -304,16 +292,15 @@ class ViewSession:
         if run.route is not None and self.routes()[run.route] is not None:
             raise GoiError(f"--route: {run.route} is not possible here: {self.routes()[run.route]}")
         self.default_route()  # inputs that can answer nothing are refused before the field loads
+        self.embeddings: TextEmbeddings | None = None
         if sources.text_embeddings is not None:  # read once: a bad file is refused now
-            from stages.query.prompts import load_text_embeddings
-
-            self.embeddings = load_text_embeddings(sources.text_embeddings)
+            self.embeddings = read_text_embeddings(sources.text_embeddings)
         self.field: Field | None = None
         self.renderer: SemanticRenderer | None = None
         if self.field_path is not None:
             self.field = load_field_for(self.field_path, scene.ply_digest())
-            if sources.text_embeddings is not None:
-                dim = next(iter(self.embeddings.values())).size
+            if self.embeddings is not None:
+                dim = next(iter(self.embeddings.vectors.values())).size
                 if dim != self.field.codebook.shape[1]:
                     raise GoiError(
                         f"{sources.text_embeddings}: embeddings of {dim} dimensions, the field's "
@@ -395,28 +382,10 @@ class ViewSession:
         return Prompt(t, self.prompt_ids.get(t))
 
     def text(self, prompt: str) -> tuple[np.ndarray, str]:
-        """The prompt's embedding and where it came from, as goi select makes it."""
+        """The prompt's embedding and where it came from, as goi select makes it (the file
+        read once, the bundle loaded once)."""
         assert self.field is not None
-        dim = self.field.codebook.shape[1]
-        if self.sources.text_embeddings is not None:
-            if prompt not in self.embeddings:  # the CLI's own message
-                return text_embedding(prompt, dim, self.sources.text_embeddings, None)
-            vec = self.embeddings[prompt]
-            if vec.shape != (dim,):
-                raise GoiError(
-                    f"{self.sources.text_embeddings}: the prompt embedding has {vec.size} "
-                    f"dimensions but the field's codebook has {dim}"
-                )
-            return vec, f"file:{Path(self.sources.text_embeddings).name}"
-        if self.bundle is None:
-            return text_embedding(prompt, dim, None, None)  # (refused: no text source)
-        vec = self.bundle.encode_text(prompt)
-        if vec.shape != (dim,):
-            raise GoiError(
-                f"{self.sources.bundle}: the prompt embedding has {vec.size} dimensions but the "
-                f"field's codebook has {dim}; the text and image features must share one space"
-            )
-        return vec.astype(np.float32), f"bundle:{self.bundle.name}"
+        return text_embedding(prompt, self.field.codebook.shape[1], self.embeddings, self.bundle)
 
     def res(self, prompt: Prompt, rast: Rasterizer) -> ResSource:
         """The prompt's RES masks, as goi select takes them (mask files in the prompt's own
