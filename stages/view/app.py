@@ -389,10 +389,10 @@ class Page:
             hint="object: from the part clicked to the whole object; part: what was clicked",
         )  # fmt: skip
         self.grow_box.on_update(lambda _: self.guarded(self._grow_changed))
-        keys = POINTER_KEYS if sam.takes_points else (
+        self.pointer_keys = POINTER_KEYS if sam.takes_points else (
             f"Shift+drag draws a box (in any mode); this SAM ({sam.layout}) takes boxes only"
         )  # fmt: skip
-        gui.add_html(self._small(_e(keys)))
+        self.pointer_note = gui.add_html("")
         self._register_pointer()
 
     def _register_pointer(self) -> None:
@@ -414,6 +414,15 @@ class Page:
         sc.on_rect_select(modifier="shift")(lambda ev: self.guarded(self._boxed, ev))
         if self.pointer == "box":
             sc.on_rect_select()(lambda ev: self.guarded(self._boxed, ev))
+        # said after the callbacks are registered: a page that shows it has them (viser's
+        # messages reach a page in order)
+        now = {
+            "orbit": "Now a drag orbits.",
+            "add": "Now a click adds (+).",
+            "remove": "Now a click removes (-).",
+            "box": "Now a drag draws a box (the camera holds still: orbit to move it).",
+        }[self.pointer]
+        self.pointer_note.content = self._small(f"<b>{_e(now)}</b> {_e(self.pointer_keys)}")
 
     def _build_named(self, gui: Any) -> None:
         """Named answers: keep the answer shown under a name, combine any two, forget one."""
