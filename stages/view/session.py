@@ -153,8 +153,9 @@ class ViewRun:
     largest Gaussians (answers are always computed on all of them)."""
     new_views: Annotated[int, Range(ge=1, le=10000)] = 4
     """With --bundle's SAM: at most this many views whose SAM image embedding is not there
-    yet (not in --res-index, not kept) a click or box encodes (seconds each on a CPU): the
-    first click on a new scene answers from 4 views, and each click adds 4 more."""
+    yet (not in --res-index, not kept) a click or box encodes each time it chooses views
+    (seconds each on a CPU; the views already there are asked first), so that the first
+    click on a new scene answers in seconds and each click adds a few views."""
     sam_cache_mib: Annotated[int, Range(ge=1, le=1 << 20)] = 512
     """Without --res-index: memory for the SAM image embeddings of the views clicks and boxes
     need (MiB; about 4 MiB a view for a SAM of ViT or TinyViT size), the least recently used
