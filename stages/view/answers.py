@@ -441,7 +441,11 @@ class Answers:
         desk = self._desk(page)
         if desk is None:
             return False
+        under_way = self.worker.pending(lambda o: o == (page, "answer")) > 0
         with desk.lock:
+            on_step = desk.current() is (desk.shown.answer if desk.shown is not None else None)
+            if by < 0 and (under_way or not on_step):
+                by = 0  # undo a request under way (or its preview): back to the step before it
             if not 0 <= desk.at + by < len(desk.steps):
                 what = "undo" if by < 0 else "redo"
                 self.refuse(page, f"nothing to {what}")

@@ -430,11 +430,23 @@ def test_an_undo_drops_the_answer_under_way(protocol):
     session.plan["slow"] = slow
     answers.ask(1, "slow", ROUTE)
     assert started.wait(30)
-    assert answers.undo(1)  # back to nothing, while "slow" still runs
+    assert answers.undo(1)  # back to "a chair", while "slow" still runs
     release.set()
     wait_for(lambda: not answers.worker.busy(), "the worker idle")
     assert [s for s in page.shows() if s[0] == "slow"] == []
-    assert answers.shown(1) is None and page.last_steps()[1] == 0
+    assert answers.shown(1).answer.prompt.text == "a chair" and page.last_steps()[1] == 1
+    # a preview on display: undo goes back to the step shown before it was asked
+    session.plan["refining"] = lambda c: (
+        c.partial(answer_of("refining", final=False)),
+        release.clear(),
+        release.wait(),
+        answer_of("x"),
+    )[-1]
+    answers.ask(1, "refining", ROUTE)
+    wait_for(lambda: ("refining", True, "route") in page.shows(), "the preview")
+    assert answers.undo(1) and answers.shown(1).answer.prompt.text == "a chair"
+    release.set()
+    assert answers.undo(1) and answers.shown(1) is None  # and then to nothing
 
 
 def test_a_click_refines_the_answer_shown_and_is_a_step(protocol):
