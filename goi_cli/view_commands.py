@@ -12,6 +12,7 @@ from goi_cli.options import EXISTING, build, dataclass_options, load_scene_from,
 from goi_cli.report import TERMINAL
 from stages.core.errors import GoiError
 from stages.query.pipeline import PromptSources
+from stages.query.pointing import PointParams
 from stages.view.access import is_loopback
 from stages.view.session import ViewRun
 
@@ -32,6 +33,7 @@ EXPOSED = (
 )
 @dataclass_options(PromptSources, skip=("prompt_id",))
 @dataclass_options(ViewRun)
+@dataclass_options(PointParams, skip=("new_views",))
 @click.option(
     "--for-seconds",
     type=click.FloatRange(min=0, min_open=True),
@@ -49,6 +51,12 @@ def view_cmd(field: Path | None, for_seconds: float | None, **kw) -> None:
     --camera-file` writes for it ("Save camera" writes such a file). Answers stay in a
     history; exports (selection.h5, PLYs, the test views' masks) go under --out.
 
+    With a --bundle that has a SAM (a SAM alone, Grounded-SAM, OWLv2 + SAM): click on the
+    scene to add (+) or remove (-) what is there, or drag a box; SAM answers in the training
+    views that see it and the masks are lifted onto the Gaussians (as goi select --click).
+    Answers can be kept under names, combined (union, intersection, difference, invert),
+    undone and redone, and exported as the labels of the scene's PLY.
+
     Binds 127.0.0.1 by default and prints the page's address with a secret token: only a
     page opened from it, at the server's own origin, is served (--no-token drops the token on
     a trusted machine). Needs `pip install 'goi[view]'`.
@@ -65,12 +73,13 @@ def view_cmd(field: Path | None, for_seconds: float | None, **kw) -> None:
     if for_seconds is not None and not math.isfinite(for_seconds):
         raise GoiError(f"--for-seconds: {for_seconds} is not a finite number of seconds")
     run = build(ViewRun, kw)
+    points = build(PointParams, kw)
     from stages.view.server import servable_port
 
     servable_port(run.host, run.port)  # before any work: the page must be servable
     sources = build(PromptSources, kw)
     scene = load_scene_from(kw)
-    session = ViewSession(scene, field, sources, run, TERMINAL)
+    session = ViewSession(scene, field, sources, run, TERMINAL, points)
     session.default_route()  # refuses inputs that can answer nothing, before serving
     if not is_loopback(run.host):
         who = "anyone" if run.no_token else "anyone with the page's address (its token)"

@@ -15,12 +15,16 @@ import re
 import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from stages.core.arrays import normalise
 from stages.core.errors import GoiError
 from stages.core.files import read_json
+
+if TYPE_CHECKING:
+    from stages.models.bundle import Bundle
 
 MAX_PROMPT_CHARS = 1000
 #: Unicode categories that show nothing: separators (spaces), format marks (zero-width space,
@@ -134,28 +138,71 @@ def _finite_vector(vec: object) -> np.ndarray | None:
     return v if np.isfinite(v).all() else None
 
 
+@dataclass(frozen=True)
+class TextEmbeddings:
+    """A --text-embeddings file read once (`read_text_embeddings`): its path, for messages
+    and the provenance, and its unit vectors by text."""
+
+    path: Path
+    vectors: dict[str, np.ndarray]
+
+
+def read_text_embeddings(path: Path) -> TextEmbeddings:
+    """--text-embeddings FILE, read and checked once (a program answering many prompts)."""
+    return TextEmbeddings(Path(path), load_text_embeddings(path))
+
+
+def read_prompt_table(path: Path, option: str = "--prompts") -> dict[str, str]:
+    """A room's prompts.json ([{id, text}, ...], other fields ignored) -> {text: id}: each
+    text checked as a prompt, each id a plain name (it names the prompt's RES mask
+    subdirectory); a text given twice keeps its first id."""
+    raw = read_json(path, f"does not exist ({option})")
+    if not isinstance(raw, list):
+        raise GoiError(f"{path}: expected a JSON list of {{id, text}} prompts")
+    table: dict[str, str] = {}
+    for i, p in enumerate(raw):
+        if not (
+            isinstance(p, dict) and isinstance(p.get("id"), str) and isinstance(p.get("text"), str)
+        ):
+            raise GoiError(f"{path}: prompt {i} is not an object with string 'id' and 'text'")
+        text = check_prompt(p["text"], f"{path}: prompt {i} 'text'")
+        check_plain_name(p["id"], f"{path}: prompt {i} 'id'", "a subdirectory of --res-masks")
+        table.setdefault(text, p["id"])
+    return table
+
+
 def text_embedding(
-    prompt: str, dim: int, embeddings: Path | None = None, bundle: Path | None = None
+    prompt: str,
+    dim: int,
+    embeddings: Path | TextEmbeddings | None = None,
+    bundle: Path | Bundle | None = None,
 ) -> tuple[np.ndarray, str]:
-    """The prompt's unit embedding [D] and where it came from (a file or a bundle)."""
+    """The prompt's unit embedding [D] and where it came from: a --text-embeddings file (a
+    path, or the file already read), else a bundle's text encoder (a path, or the bundle
+    already loaded)."""
     if embeddings is not None:
-        table = load_text_embeddings(embeddings)
-        if prompt not in table:
+        if isinstance(embeddings, TextEmbeddings):
+            path, vectors = embeddings.path, embeddings.vectors
+        else:
+            path, vectors = Path(embeddings), load_text_embeddings(embeddings)
+        if prompt not in vectors:
             raise GoiError(
-                f"{embeddings}: no embedding for prompt {prompt[:80]!r} ({len(table)} texts "
+                f"{path}: no embedding for prompt {prompt[:80]!r} ({len(vectors)} texts "
                 "listed); add it, or pass --bundle DIR with a text encoder to embed any prompt"
             )
-        vec, source = table[prompt], f"file:{Path(embeddings).name}"
+        vec, source, where = vectors[prompt], f"file:{path.name}", str(path)
     elif bundle is not None:
-        from stages.models.bundle import load_bundle
+        from stages.models.bundle import Bundle, load_bundle
 
-        b = load_bundle(bundle)
+        loaded = isinstance(bundle, Bundle)
+        b = bundle if isinstance(bundle, Bundle) else load_bundle(bundle)
         vec, source = b.encode_text(prompt), f"bundle:{b.name}"
+        where = str(b.root if loaded else bundle)
     else:
         raise GoiError("give --text-embeddings FILE or --bundle DIR to embed the prompt")
     if vec.shape != (dim,):
         raise GoiError(
-            f"{embeddings or bundle}: the prompt embedding has {vec.size} dimensions but the "
+            f"{where}: the prompt embedding has {vec.size} dimensions but the "
             f"field's codebook has {dim}; the text and image features must share one space"
         )
     return vec.astype(np.float32), source

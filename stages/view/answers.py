@@ -25,10 +25,23 @@ A lifted answer that must index a view while another goi process writes the RES 
 for that process with the machine's cores free (the worker's gate released), says so in the
 page, and stops when the page asks something else; an index that another process replaced is
 read again (stages.view.session).
+
+Clicks and boxes ("click", "box") and combinations of two answers ("combine") are requests of
+their own kind, run as a prompt is (a new generation, cancellable, previews, the history,
+counted against the page's prompts a second). A click or box refines the answer on display
+(its `base`: the page's current step), as `goi select --prompt T --click ...` refines T's.
+
+Every final answer a page is shown becomes one of its *steps*; `undo` and `redo` move along
+them (the first step is "nothing"), and a new answer after an undo drops the steps after it.
+A page's steps are bounded in bytes (`undo_bytes`, the oldest go first). Answers can be kept
+under a name, shared by all pages (`keep`, `forget`), within `history_bytes` of their own
+(naming past it is refused, never evicting a name); any two combine (union, intersection,
+difference; invert of one), and all of them export as the labels of the scene's PLY.
 """
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 import traceback
@@ -39,6 +52,9 @@ from typing import Any, Protocol
 
 from stages.core.errors import GoiError
 from stages.core.files import OutputBusy, output_lock
+from stages.query.pointing import BoxPrompt, Click
+from stages.scene.cameras import Camera
+from stages.view.selections import OPS
 from stages.view.session import ROUTE_NAMES, Answer, ViewSession, kept
 from stages.view.worker import Control, Job, Worker
 
@@ -49,6 +65,13 @@ INDEX_WAIT_S = 600.0
 RATE_WINDOW_S = 10.0
 #: What a page says for a failure that is not the user's (the log has the traceback).
 INTERNAL = "the viewer failed on this request (a bug: its log has the details)"
+#: An operand of a combination that is the answer on display, not a named one.
+SHOWN = "(the answer shown)"
+#: The longest name an answer can be kept under.
+MAX_NAME = 60
+#: A pointed answer's text writes the text of the answer it refines up to this many
+#: characters (a chain of clicks would grow it without end).
+BASE_TEXT = 100
 
 
 class Display(Protocol):
@@ -74,7 +97,13 @@ class Display(Protocol):
         """An export finished (or failed): one line."""
 
     def history_changed(self) -> None:
-        """The shared history gained or lost an answer."""
+        """The shared history (or the named answers) gained or lost an answer."""
+
+    def clear(self) -> None:
+        """Show no answer (an undo back to the first step)."""
+
+    def steps(self, items: list[str], at: int) -> None:
+        """The page's steps (each final answer it was shown), and the one on display."""
 
 
 @dataclass(frozen=True)
@@ -89,7 +118,7 @@ class Request:
     def describe(self) -> str:
         if self.kind == "text":
             return f"{_quote(self.payload['text'])} ({ROUTE_NAMES[self.payload['route']]})"
-        return self.kind
+        return f"{self.kind} {_quote(str(self.payload.get('text', '')))}"
 
 
 @dataclass(frozen=True)
@@ -99,7 +128,7 @@ class Shown:
 
     request: Request
     answer: Answer
-    source: str  # "field" (the field's first answer), "route", "history"
+    source: str  # "field" (the field's first answer), "route", "history", "step" (undo, redo)
 
     @property
     def preview(self) -> bool:
@@ -116,6 +145,11 @@ class _Desk:
     lock: threading.RLock = field(default_factory=threading.RLock)
     exports: int = 0  # exports asked so far (each its own job)
     asked: deque[float] = field(default_factory=deque)  # when it asked, within RATE_WINDOW_S
+    steps: list[Answer | None] = field(default_factory=lambda: [None])  # [0]: nothing shown
+    at: int = 0  # the step on display
+
+    def current(self) -> Answer | None:
+        return self.steps[self.at]
 
 
 class History:
@@ -163,6 +197,7 @@ class Answers:
         history_bytes: int = 128 << 20,
         max_exports: int = 4,
         prompts_per_s: float = 2.0,
+        undo_bytes: int = 64 << 20,
     ):
         self.session = session
         self.worker = worker
@@ -170,6 +205,10 @@ class Answers:
         self.history = History(history_bytes)
         self.max_exports = max_exports
         self.prompts_per_s = prompts_per_s
+        self.undo_bytes = undo_bytes
+        self.named_bytes = history_bytes
+        self._named: OrderedDict[str, Answer] = OrderedDict()
+        self._serial = itertools.count(1)  # a pointed or combined request's own key
         self._desks: dict[Hashable, _Desk] = {}
         self._lock = threading.Lock()
 
@@ -213,7 +252,9 @@ class Answers:
 
     # -- telling a page, for a request that is still its newest ------------------------------
 
-    def _deliver(self, req: Request, answer: Answer, source: str) -> bool:
+    def _deliver(self, req: Request, answer: Answer, source: str, step: bool = False) -> bool:
+        """Show `answer` for `req` when it is still the page's newest request; `step`: it
+        becomes the page's newest step (a final answer)."""
         desk = self._desk(req.page)
         if desk is None:
             return False
@@ -224,7 +265,25 @@ class Answers:
             desk.display.show(desk.shown)
             if answer.final and source != "field":
                 desk.display.idle()
+            if step:
+                self._step(desk, answer)
         return True
+
+    def _step(self, desk: _Desk, answer: Answer) -> None:
+        """`answer` as the desk's newest step (the steps after the one on display dropped),
+        the oldest dropped past `undo_bytes` (under the desk's lock)."""
+        desk.steps = [*desk.steps[: desk.at + 1], answer]
+        desk.at = len(desk.steps) - 1
+        sizes = [0 if a is None else a.nbytes() for a in desk.steps]
+        while sum(sizes) > self.undo_bytes and len(desk.steps) > 1:
+            desk.steps.pop(0)
+            sizes.pop(0)
+            desk.at -= 1
+        self._tell_steps(desk)
+
+    @staticmethod
+    def _tell_steps(desk: _Desk) -> None:
+        desk.display.steps([_step_line(a) for a in desk.steps], desk.at)
 
     def _tell(self, req: Request, what: str, *args: Any) -> None:
         desk = self._desk(req.page)
@@ -276,7 +335,7 @@ class Answers:
         cached = self.history.get(key)
         if cached is not None:
             self.worker.cancel((page, "answer"))
-            self._deliver(req, cached, "history")
+            self._deliver(req, cached, "history", step=True)
             return req
         self._tell(req, "note", f"answering {req.describe()}...")
         self._tell(req, "progress", 0, 1, "")
@@ -289,7 +348,7 @@ class Answers:
             ans = self._patiently(req, control, lambda: answer(req, control))
             control.check()
             k = self.history.add(ans)
-            self._deliver(req, k, "route")
+            self._deliver(req, k, "route", step=True)
             self.log(
                 f"answered {req.describe()}: {k.count:,} Gaussians ({k.label}) in "
                 f"{time.perf_counter() - t0:.2f} s"
@@ -323,8 +382,170 @@ class Answers:
             return False
         req = self._new_request(page, ans.kind, {"text": ans.prompt.text, "route": ans.route})
         self.worker.cancel((page, "answer"))
-        self._deliver(req, ans, "history")
+        self._deliver(req, ans, "history", step=True)
         return True
+
+    # -- clicks and boxes -------------------------------------------------------------------
+
+    def point(
+        self,
+        page: Hashable,
+        clicks: list[Click],
+        boxes: list[BoxPrompt],
+        cams: dict[str, Camera],
+        granularity: str,
+    ) -> Request | None:
+        """Clicks or boxes from `page` (at its cameras `cams`), refining the page's answer on
+        display; None when refused (no SAM, or a SAM that takes no clicks; an answer still
+        refining; too many requests)."""
+        kind = "click" if clicks else "box"
+        desk = self._desk(page)
+        if desk is None:
+            return None
+        try:
+            self.session.check_point(kind)
+            if desk.shown is not None and desk.shown.preview:
+                raise GoiError(
+                    f"{kind}: the answer on display is still refining; wait for it, then "
+                    f"{kind} to refine it"
+                )
+            self._count_prompt(page)
+        except GoiError as e:
+            self.refuse(page, str(e))
+            return None
+        base = desk.current()
+        what = ", ".join(
+            [f"{'+' if c.positive else '-'} click at {c.u:.0f},{c.v:.0f}" for c in clicks]
+            + ["box " + ",".join(f"{x:.0f}" for x in b.box) for b in boxes]
+        )
+        text = what if base is None else f"{_clip(base.prompt.text, BASE_TEXT)} {what}"
+        payload = {"text": text, "clicks": [c.text() for c in clicks],
+                   "boxes": [b.text() for b in boxes], "granularity": granularity}  # fmt: skip
+
+        def answer(req: Request, control: Control) -> Answer:
+            return self.session.point(clicks, boxes, base, cams, granularity, text, control)
+
+        return self.request(page, kind, payload, (kind, next(self._serial)), answer)
+
+    # -- steps ------------------------------------------------------------------------------
+
+    def undo(self, page: Hashable) -> bool:
+        """Show the page's step before the one on display."""
+        return self._move(page, -1)
+
+    def redo(self, page: Hashable) -> bool:
+        """Show the page's step after the one on display (after an undo)."""
+        return self._move(page, +1)
+
+    def _move(self, page: Hashable, by: int) -> bool:
+        desk = self._desk(page)
+        if desk is None:
+            return False
+        under_way = self.worker.pending(lambda o: o == (page, "answer")) > 0
+        with desk.lock:
+            on_step = desk.current() is (desk.shown.answer if desk.shown is not None else None)
+            if by < 0 and (under_way or not on_step):
+                by = 0  # undo a request under way (or its preview): back to the step before it
+            if not 0 <= desk.at + by < len(desk.steps):
+                what = "undo" if by < 0 else "redo"
+                self.refuse(page, f"nothing to {what}")
+                return False
+            desk.at += by
+            desk.generation += 1  # what is under way for the page is dropped
+            ans = desk.steps[desk.at]
+            self.worker.cancel((page, "answer"))
+            if ans is None:
+                desk.shown = None
+                desk.display.clear()
+            else:
+                payload = {"text": ans.prompt.text, "route": ans.route}
+                desk.shown = Shown(Request(page, desk.generation, ans.kind, payload), ans, "step")
+                desk.display.show(desk.shown)
+            desk.display.idle()
+            self._tell_steps(desk)
+        self.log(f"page {page} {'undid' if by < 0 else 'redid'} a step")
+        return True
+
+    # -- named answers, combined --------------------------------------------------------------
+
+    def named(self) -> list[tuple[str, Answer]]:
+        """The answers kept under a name, in the order they were named."""
+        with self._lock:
+            return list(self._named.items())
+
+    def keep(self, page: Hashable, name: object) -> bool:
+        """Keep the page's answer on display under `name` (replacing the answer of that name)."""
+        desk = self._desk(page)
+        if desk is None:
+            return False
+        try:
+            n = _check_name(name)
+            ans = desk.current()
+            if ans is None or (desk.shown is not None and desk.shown.preview):
+                raise GoiError("name: there is no final answer on display to keep")
+            with self._lock:
+                held = sum(a.nbytes() for k, a in self._named.items() if k != n)
+                if held + ans.nbytes() > self.named_bytes:
+                    raise GoiError(
+                        f"name: the named answers would take {(held + ans.nbytes()) / 2**20:.1f} "
+                        f"MiB, past --history-mib {self.named_bytes >> 20}; forget one first"
+                    )
+                self._named[n] = ans
+        except GoiError as e:
+            self.refuse(page, str(e))
+            return False
+        self.log(f"page {page} kept {_step_line(ans)} as {_quote(n)}")
+        self.history_changed()
+        return True
+
+    def forget(self, page: Hashable, name: object) -> bool:
+        with self._lock:
+            gone = self._named.pop(name, None) if isinstance(name, str) else None
+        if gone is None:
+            self.refuse(page, "name: no answer is kept under that name")
+            return False
+        self.history_changed()
+        return True
+
+    def combine(self, page: Hashable, op: object, a: object, b: object = None) -> Request | None:
+        """The union, intersection or difference of answers `a` and `b`, or the invert of
+        `a` (each a name, or SHOWN: the answer on display), as the page's next answer."""
+        desk = self._desk(page)
+        if desk is None:
+            return None
+        try:
+            if not isinstance(op, str) or op not in OPS:
+                raise GoiError(f"combine: the operation is one of {', '.join(OPS)}")
+            A = self._operand(desk, a, "A")
+            B = None if op == "invert" else self._operand(desk, b, "B")
+            self._count_prompt(page)
+        except GoiError as e:
+            self.refuse(page, str(e))
+            return None
+        la = a if a != SHOWN else _clip(A.prompt.text, BASE_TEXT)
+        if B is None:
+            text = f"not ({la})"
+        else:
+            lb = b if b != SHOWN else _clip(B.prompt.text, BASE_TEXT)
+            text = f"({la}) {OPS[op]} ({lb})"
+
+        def answer(req: Request, control: Control) -> Answer:
+            return self.session.combine(op, A, B, text)
+
+        payload = {"text": text, "op": op}
+        return self.request(page, "combine", payload, ("combine", next(self._serial)), answer)
+
+    def _operand(self, desk: _Desk, name: object, which: str) -> Answer:
+        if name == SHOWN:
+            ans = desk.current()
+            if ans is None or (desk.shown is not None and desk.shown.preview):
+                raise GoiError(f"combine: {which} is the answer shown, and there is no final one")
+            return ans
+        with self._lock:
+            got = self._named.get(name) if isinstance(name, str) else None
+        if got is None:
+            raise GoiError(f"combine: {which} is not one of the named answers")
+        return got
 
     def _answer_text(self, req: Request, control: Control) -> Answer:
         s = self.session
@@ -388,15 +609,9 @@ class Answers:
         if shown is None or shown.preview:
             self.refuse(page, "ask a prompt and wait for its final answer first")
             return False
-        under_way = self.worker.pending(
-            lambda o: isinstance(o, tuple) and o[:2] == (page, "export")
-        )
-        if under_way >= self.max_exports:
-            self.refuse(page, f"{under_way} exports are under way; wait for one to finish")
+        owner = self._export_owner(page)
+        if owner is None:
             return False
-        with desk.lock:
-            desk.exports += 1
-            owner = (page, "export", desk.exports)
         ans = shown.answer
         where = f"{_quote(ans.prompt.text)} ({ROUTE_NAMES[ans.route]})"
 
@@ -413,6 +628,47 @@ class Answers:
 
         self.worker.submit(owner, job, Control())
         return True
+
+    def export_labels(self, page: Hashable) -> bool:
+        """The named answers as the labels of the scene's PLY (its own job)."""
+        named = self.named()
+        if not named:
+            self.refuse(page, "labels: keep an answer under a name first")
+            return False
+        owner = self._export_owner(page)
+        if owner is None:
+            return False
+        desk = self._desk(page)
+        assert desk is not None
+
+        def job(control: Control) -> None:
+            try:
+                path = self.session.export_labels(named)
+            except GoiError as e:
+                self.log(f"refused an export of the labels: {e}")
+                desk.display.exported(f"labels: {e}", True)
+                return
+            self.log(f"exported the labels of {len(named)} named answers: {path}")
+            desk.display.exported(f"wrote {path}", False)
+
+        self.worker.submit(owner, job, Control())
+        return True
+
+    def _export_owner(self, page: Hashable) -> tuple | None:
+        """A new export's owner (its own job), or None when the page has `max_exports`
+        under way (refused)."""
+        desk = self._desk(page)
+        if desk is None:
+            return None
+        under_way = self.worker.pending(
+            lambda o: isinstance(o, tuple) and o[:2] == (page, "export")
+        )
+        if under_way >= self.max_exports:
+            self.refuse(page, f"{under_way} exports are under way; wait for one to finish")
+            return None
+        with desk.lock:
+            desk.exports += 1
+            return (page, "export", desk.exports)
 
     # -- failures ---------------------------------------------------------------------------
 
@@ -444,4 +700,33 @@ def _preview(ans: Answer, label: str) -> Answer:
 
 
 def _quote(text: str, n: int = 80) -> str:
-    return repr(text if len(text) <= n else text[: n - 3] + "...")
+    return repr(_clip(text, n))
+
+
+def _clip(text: str, n: int) -> str:
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def _step_line(ans: Answer | None) -> str:
+    """A step as the page lists it."""
+    if ans is None:
+        return "nothing selected"
+    what = {"text": ROUTE_NAMES.get(ans.route, ans.route), "click": "click", "box": "box",
+            "combine": "combined"}.get(ans.kind, ans.kind)  # fmt: skip
+    return f"{_clip(ans.prompt.text, 80)} ({what}): {ans.count:,}"
+
+
+def _check_name(name: object) -> str:
+    """A name to keep an answer under: text, printable, 1..MAX_NAME characters."""
+    if not isinstance(name, str):
+        raise GoiError("name: not text")
+    n = name.strip()
+    if not n:
+        raise GoiError("name: type a name for the answer first")
+    if len(n) > MAX_NAME:
+        raise GoiError(f"name: {len(n)} characters; at most {MAX_NAME}")
+    if not n.isprintable():
+        raise GoiError("name: it holds a character that is not printable")
+    if n == SHOWN:
+        raise GoiError(f"name: {SHOWN} is the answer on display; choose another name")
+    return n

@@ -11,7 +11,9 @@ viser is imported here and in `stages.view.server` only (the optional extra `goi
 
 from __future__ import annotations
 
+import dataclasses
 import html
+import math
 import threading
 import time
 import traceback
@@ -23,10 +25,13 @@ import numpy as np
 
 from stages.core.errors import GoiError
 from stages.core.report import SILENT, Report
+from stages.query.pointing import GRANULARITIES, BoxPrompt, Click
 from stages.scene.cameras import Camera
-from stages.view.answers import INTERNAL, Answers, Shown
+from stages.view.answers import INTERNAL, SHOWN, Answers, Shown
 from stages.view.cameras import MASK_SIDE, browser_camera, browser_pose, framing, render_size
-from stages.view.session import ROUTE_NAMES, ViewSession
+from stages.view.pointed import ray_pixel, screen_box, screen_pixel
+from stages.view.selections import stretched
+from stages.view.session import ROUTE_NAMES, Answer, ViewSession
 from stages.view.splats import MODES, Plan, pack, plan, scene_splats
 from stages.view.worker import Job, Worker
 
@@ -50,6 +55,32 @@ EXPORT_BUTTONS = {
     "masks of the test views": "masks",
 }
 NONE = "-"
+NONE_POINTER = "orbit (clicks off)"
+#: What a plain click (or drag) on the scene does, as the page offers it; Shift and Alt do the
+#: same whatever the choice (POINTER_KEYS).
+POINTER = {
+    "orbit (clicks off)": "orbit",
+    "click adds (+)": "add",
+    "click removes (-)": "remove",
+    "drag a box": "box",
+}
+POINTER_KEYS = "Shift+click adds, Alt+click removes, Shift+drag draws a box (in any mode)"
+#: The operations of "Combine", as the page writes them.
+OP_NAMES = {
+    "A | B (union)": "union",
+    "A & B (intersection)": "intersection",
+    "A - B (difference)": "difference",
+    "not A (invert)": "invert",
+}
+#: A click whose ray and canvas position disagree by more than this share of the long side
+#: was made while the page's camera moved: refused (the pixel would be another).
+RAY_SLACK = 0.02
+#: The smallest box a drag makes (pixels of the page's camera, each side).
+MIN_BOX = 4.0
+HEAT_LEGEND = (
+    "heat: grey no score, blue low, yellow the answer's cut, red certain (lifted: the vote "
+    "share; the paper's routes: the plane's probability)"
+)
 
 
 def _e(text: object) -> str:
@@ -80,7 +111,8 @@ class ViewerApp:
         self.worker = Worker(self._job_failed)
         run = session.run
         self.answers = Answers(session, self.worker, self.log, run.history_mib << 20,
-                               prompts_per_s=run.prompts_per_s)  # fmt: skip
+                               prompts_per_s=run.prompts_per_s,
+                               undo_bytes=run.undo_mib << 20)  # fmt: skip
         self.pages: dict[int, Page] = {}
         self.gone: set[int] = set()  # tabs closed while their page was being built
         self.lock = threading.Lock()
@@ -236,6 +268,10 @@ class Page:
         self.mask_key: tuple = ()  # the camera and answer of the mask on display
         self.history_keys: dict[str, tuple] = {}
         self.route_names: dict[str, str] = {}
+        self.pointer = "orbit"
+        self.granularity = app.session.point_params.granularity
+        self.cameras = 0  # the page's cameras a click or box was made at, so far
+        self.evidence_views: dict[str, str] = {}  # the evidence dropdown's entries -> views
         self.mask_thread = threading.Thread(target=self._mask_loop, daemon=True)
 
     # -- building the page --------------------------------------------------------------------
@@ -252,43 +288,67 @@ class Page:
             f"<div style='font-size:0.85em'><b>goi view</b> &middot; {name} &middot; {size} "
             f"&middot; {len(s.scene.cameras)} cameras</div>"
         )
-        with gui.add_form(None) as form:
-            self.prompt_box = gui.add_text("Prompt", "", hint="Type a prompt and press Enter")
-            ask = gui.add_button("Ask", hint="Answer the prompt (or press Enter)")
-        ask.on_click(lambda _: form.submit())
-        form.on_submit(lambda _: self.guarded(self.ask, self.prompt_box.value))
+        self.prompt_box = None
         self.suggest = None
-        if s.suggestions():
-            self.suggest = gui.add_dropdown(
-                "Examples", [NONE, *s.suggestions()], initial_value=NONE
+        if self.route is not None:
+            with gui.add_form(None) as form:
+                self.prompt_box = gui.add_text("Prompt", "", hint="Type a prompt and press Enter")
+                ask = gui.add_button("Ask", hint="Answer the prompt (or press Enter)")
+            ask.on_click(lambda _: form.submit())
+            form.on_submit(lambda _: self.guarded(self.ask, self._prompt_text()))
+            if s.suggestions():
+                self.suggest = gui.add_dropdown(
+                    "Examples", [NONE, *s.suggestions()], initial_value=NONE
+                )
+                self.suggest.on_update(lambda _: self.guarded(self._suggested))
+            allowed = [r for r, why in s.routes().items() if why is None]
+            self.route_names = {ROUTE_NAMES[r]: r for r in allowed}
+            self.route_box = gui.add_dropdown(
+                "Route", list(self.route_names), initial_value=ROUTE_NAMES[self.route]
             )
-            self.suggest.on_update(lambda _: self.guarded(self._suggested))
-        allowed = [r for r, why in s.routes().items() if why is None]
-        self.route_names = {ROUTE_NAMES[r]: r for r in allowed}
-        self.route_box = gui.add_dropdown(
-            "Route", list(self.route_names), initial_value=ROUTE_NAMES[self.route]
-        )
-        self.route_box.on_update(lambda _: self.guarded(self._route_changed))
+            self.route_box.on_update(lambda _: self.guarded(self._route_changed))
         closed = [(r, why) for r, why in s.routes().items() if why is not None]
-        if closed:
+        if closed and self.route is not None:
             rows = "".join(
                 f"<div style='color:#999'>{_e(ROUTE_NAMES[r])}: {_e(why)}</div>"
                 for r, why in closed
             )
             gui.add_html(f"<div style='font-size:0.8em'>{rows}</div>")
-        self.status = gui.add_html(self._status_html("Ask a prompt to light up its Gaussians."))
+        first = "Ask a prompt to light up its Gaussians."
+        if s.sam is not None:
+            first = (
+                "Ask a prompt, or point at something: pick what a click does below."
+                if self.route is not None
+                else "Point at something to light up its Gaussians: pick what a click does "
+                "below (the bundle is a SAM alone: no text prompts)."
+            )
+        self.status = gui.add_html(self._status_html(first))
         self.bar = gui.add_progress_bar(0.0, visible=False)
         self.fly_button = gui.add_button(
             "Fly to the answer", hint="Frame the answer on display", visible=False
         )
         self.fly_button.on_click(lambda _: self.guarded(self.fly_to_answer))
+        if s.sam is not None:
+            self._build_pointer(gui)
+        undo = gui.add_button("Undo", hint="Show the step before (text, click, box, combine)")
+        undo.on_click(lambda _: self.guarded(self.app.answers.undo, self.id))
+        redo = gui.add_button("Redo", hint="Show the step after (after an undo)")
+        redo.on_click(lambda _: self.guarded(self.app.answers.redo, self.id))
+        self.steps_html = gui.add_html(self._small("Steps: none yet."))
         self.mode_box = gui.add_dropdown("Highlight", list(MODES), initial_value=self.mode)
         self.mode_box.on_update(lambda _: self.guarded(self._mode_changed))
         self.color_box = gui.add_rgb("Tint", tuple(int(255 * c) for c in TINT))
         self.color_box.on_update(lambda _: self.guarded(self._color_changed))
         self.history_box = gui.add_dropdown("History", [NONE], initial_value=NONE)
         self.history_box.on_update(lambda _: self.guarded(self._history_picked))
+        self._build_named(gui)
         blank = np.zeros((*render_size(4, 3)[::-1], 3), np.uint8)
+        with gui.add_folder("Evidence of the answer shown"):
+            self.evidence_note = gui.add_html(self._small("No answer yet."))
+            self.evidence_box = gui.add_dropdown("View", [NONE], initial_value=NONE)
+            self.evidence_box.on_update(lambda _: self.guarded(self._evidence_picked))
+            self.evidence_image = gui.add_image(blank, format="jpeg", jpeg_quality=85,
+                                                visible=False)  # fmt: skip
         # the photo of the camera last clicked: near the top, shown once there is one
         self.photo_note = gui.add_html(self._small("Click a camera in the scene for its photo."))
         self.photo = gui.add_image(blank, format="jpeg", jpeg_quality=85, visible=False)
@@ -302,6 +362,11 @@ class Page:
             for label, what in EXPORT_BUTTONS.items():
                 b = gui.add_button(label)
                 b.on_click(lambda _, what=what: self.guarded(self.export, what))
+            labels = gui.add_button(
+                "PLY: the scene, named answers as labels",
+                hint="The scene's PLY with a label and a score per Gaussian (OUT/labels/)",
+            )
+            labels.on_click(lambda _: self.guarded(self.export_labels))
             self.export_note = gui.add_html(self._small(f"Into {_e(s.out.root)}/"))
         self._send_scene()
         self.client.camera.on_update(lambda _: self._camera_moved())
@@ -310,6 +375,69 @@ class Page:
         self.mask_thread.start()
         self.built.set()
         self.history_changed()
+
+    def _build_pointer(self, gui: Any) -> None:
+        """The pointer's controls: what a plain click or drag does, and the granularity."""
+        sam = self.app.session.sam
+        assert sam is not None
+        modes = {k: v for k, v in POINTER.items() if sam.takes_points or v in ("orbit", "box")}
+        self.pointer_names = modes
+        self.pointer_box = gui.add_dropdown("Pointer", list(modes), initial_value=NONE_POINTER)
+        self.pointer_box.on_update(lambda _: self.guarded(self._pointer_changed))
+        self.grow_box = gui.add_dropdown(
+            "Grow to", list(GRANULARITIES), initial_value=self.granularity,
+            hint="object: from the part clicked to the whole object; part: what was clicked",
+        )  # fmt: skip
+        self.grow_box.on_update(lambda _: self.guarded(self._grow_changed))
+        self.pointer_keys = POINTER_KEYS if sam.takes_points else (
+            f"Shift+drag draws a box (in any mode); this SAM ({sam.layout}) takes boxes only"
+        )  # fmt: skip
+        self.pointer_note = gui.add_html("")
+        self._register_pointer()
+
+    def _register_pointer(self) -> None:
+        """viser's scene pointer callbacks for the page's pointer mode: Shift and Alt always;
+        a plain click in the click modes; a plain drag only in box mode (viser holds the
+        camera still while a box is dragged, so the orbit needs a mode of its own)."""
+        sam = self.app.session.sam
+        if sam is None:
+            return
+        sc = self.client.scene
+        sc.remove_click_callback("all")
+        sc.remove_rect_select_callback("all")
+        if sam.takes_points:
+            sc.on_click(modifier="shift")(lambda ev: self.guarded(self._clicked, ev, True))
+            sc.on_click(modifier="alt")(lambda ev: self.guarded(self._clicked, ev, False))
+            if self.pointer in ("add", "remove"):
+                plus = self.pointer == "add"
+                sc.on_click()(lambda ev: self.guarded(self._clicked, ev, plus))
+        sc.on_rect_select(modifier="shift")(lambda ev: self.guarded(self._boxed, ev))
+        if self.pointer == "box":
+            sc.on_rect_select()(lambda ev: self.guarded(self._boxed, ev))
+        # said after the callbacks are registered: a page that shows it has them (viser's
+        # messages reach a page in order)
+        now = {
+            "orbit": "Now a drag orbits.",
+            "add": "Now a click adds (+).",
+            "remove": "Now a click removes (-).",
+            "box": "Now a drag draws a box (the camera holds still: orbit to move it).",
+        }[self.pointer]
+        self.pointer_note.content = self._small(f"<b>{_e(now)}</b> {_e(self.pointer_keys)}")
+
+    def _build_named(self, gui: Any) -> None:
+        """Named answers: keep the answer shown under a name, combine any two, forget one."""
+        with gui.add_folder("Named answers"):
+            self.name_box = gui.add_text("Name", "", hint="A name for the answer shown")
+            keep = gui.add_button("Keep the answer shown", hint="Under the name typed above")
+            keep.on_click(lambda _: self.guarded(self.keep))
+            self.named_html = gui.add_html(self._small("None kept yet."))
+            self.a_box = gui.add_dropdown("A", [SHOWN], initial_value=SHOWN)
+            self.op_box = gui.add_dropdown("Operation", list(OP_NAMES))
+            self.b_box = gui.add_dropdown("B", [SHOWN], initial_value=SHOWN)
+            combine = gui.add_button("Combine", hint="Show A and B combined (a step of its own)")
+            combine.on_click(lambda _: self.guarded(self.combine))
+            forget = gui.add_button("Forget A", hint="Drop the name chosen as A")
+            forget.on_click(lambda _: self.guarded(self.forget))
 
     def _send_scene(self) -> None:
         app = self.app
@@ -366,9 +494,14 @@ class Page:
 
     # -- what the page sends, checked ---------------------------------------------------------
 
+    def _prompt_text(self) -> object:
+        return self.prompt_box.value if self.prompt_box is not None else None
+
     def ask(self, text: object) -> None:
         if not isinstance(text, str):
             raise GoiError("prompt: not text")
+        if self.route is None:
+            raise GoiError("prompt: this viewer answers clicks and boxes only (no text route)")
         self.app.answers.ask(self.id, text, self.route)
 
     def _suggested(self) -> None:
@@ -379,6 +512,7 @@ class Page:
         if value not in self.app.session.suggestions():
             self.suggest.value = NONE
             raise GoiError("examples: not one of the examples")
+        assert self.prompt_box is not None
         self.prompt_box.value = value
         self.suggest.value = NONE  # picking the same example again asks it again
         self.ask(value)
@@ -386,9 +520,92 @@ class Page:
     def _route_changed(self) -> None:
         route = self.route_names.get(self.route_box.value)
         if route is None:
-            self.route_box.value = ROUTE_NAMES[self.route]
+            self.route_box.value = ROUTE_NAMES[self.route] if self.route else NONE
             raise GoiError("route: not one of the routes this viewer offers")
         self.route = route
+
+    # -- pointing -----------------------------------------------------------------------------
+
+    def _pointer_changed(self) -> None:
+        mode = self.pointer_names.get(self.pointer_box.value)
+        if mode is None:
+            back = {v: k for k, v in self.pointer_names.items()}
+            self.pointer_box.value = back[self.pointer]
+            raise GoiError("pointer: not one of the pointer modes")
+        with self.lock:
+            self.pointer = mode
+            self._register_pointer()
+
+    def _grow_changed(self) -> None:
+        value = self.grow_box.value
+        if value not in GRANULARITIES:
+            self.grow_box.value = self.granularity
+            raise GoiError(f"grow to: one of {', '.join(GRANULARITIES)}")
+        self.granularity = value
+
+    def _page_camera(self, what: str) -> Camera:
+        """The page's camera as a camera of its own (a click or box is made at it)."""
+        cam = self.browser_camera()
+        if cam is None:
+            raise GoiError(f"{what}: the browser has not reported its camera yet")
+        self.cameras += 1
+        return dataclasses.replace(cam, name=f"page{self.id}-view{self.cameras}")
+
+    def _clicked(self, event: Any, positive: bool) -> None:
+        """A click on the scene: a pixel of the page's camera, + or -, refining the answer
+        shown (checked: the canvas position, and the ray through it from the camera)."""
+        screen: Any = getattr(event, "screen_pos", None)
+        if not _unit_pair(screen):
+            raise GoiError("click: the position is not a point of the canvas")
+        cam = self._page_camera("click")
+        u, v = screen_pixel(screen, cam)
+        ray = None
+        if _finite3(event):
+            origin = np.asarray(event.ray_origin, np.float64)
+            direction = np.asarray(event.ray_direction, np.float64)
+            ray = ray_pixel(origin, direction, cam, self.app.extent)
+        if ray is None or max(abs(ray[0] - u), abs(ray[1] - v)) > RAY_SLACK * max(
+            cam.width, cam.height
+        ):
+            raise GoiError("click: the view moved while you clicked; click again once it rests")
+        click = Click(cam.name, u, v, positive)
+        self.app.log(f"page {self.id} clicked {click.text()}")
+        self.app.answers.point(self.id, [click], [], {cam.name: cam}, self.granularity)
+
+    def _boxed(self, event: Any) -> None:
+        """A box dragged on the scene: a rectangle at the page's camera."""
+        lo: Any = getattr(event, "screen_min", None)
+        hi: Any = getattr(event, "screen_max", None)
+        if not (_unit_pair(lo) and _unit_pair(hi)):
+            raise GoiError("box: the corners are not points of the canvas")
+        cam = self._page_camera("box")
+        x0, y0, x1, y1 = screen_box(lo, hi, cam)
+        if x1 - x0 < MIN_BOX or y1 - y0 < MIN_BOX:
+            raise GoiError("box: drag a larger box around what you mean")
+        box = BoxPrompt(cam.name, (x0, y0, x1, y1))
+        self.app.log(f"page {self.id} drew a box {box.text()}")
+        self.app.answers.point(self.id, [], [box], {cam.name: cam}, self.granularity)
+
+    # -- named answers --------------------------------------------------------------------------
+
+    def keep(self) -> None:
+        if self.app.answers.keep(self.id, self.name_box.value):
+            self.name_box.value = ""
+
+    def combine(self) -> None:
+        op = OP_NAMES.get(self.op_box.value)
+        if op is None:
+            raise GoiError(f"combine: the operation is one of {', '.join(OP_NAMES)}")
+        self.app.answers.combine(self.id, op, self.a_box.value, self.b_box.value)
+
+    def forget(self) -> None:
+        if self.a_box.value == SHOWN:
+            raise GoiError("forget: choose a named answer as A")
+        self.app.answers.forget(self.id, self.a_box.value)
+
+    def export_labels(self) -> None:
+        if self.app.answers.export_labels(self.id):
+            self.export_note.content = self._small("writing the labels...")
 
     def _mode_changed(self) -> None:
         mode = self.mode_box.value
@@ -423,7 +640,7 @@ class Page:
         if key is None:
             raise GoiError("history: not one of the answers in the history")
         ans = self.app.answers.history.get(key)
-        if ans is not None:
+        if ans is not None and ans.kind == "text" and self.prompt_box is not None:
             self.prompt_box.value = ans.prompt.text
         self.app.answers.pick(self.id, key)
 
@@ -441,6 +658,8 @@ class Page:
             self._redraw()
             self._describe()
             self.fly_button.visible = ans.count > 0
+            if not shown.preview:
+                self._show_evidence(ans)
         self.client.flush()
         self.shown_at = time.perf_counter()
         if ans.count and (first or not shown.preview) and not self._in_view(ans.selected):
@@ -460,12 +679,13 @@ class Page:
                 f"{_e(ans.label)}: not the answer yet"
             )
         else:
-            src = " (from the history)" if shown.source == "history" else ""
-            what = f"<b>answer</b>: {_e(ans.label)}{src}"
+            src = {"history": " (from the history)", "step": " (undo/redo)"}
+            what = f"<b>answer</b>: {_e(ans.label)}{src.get(shown.source, '')}"
+        legend = f"<br>{_e(HEAT_LEGEND)}" if self.mode == "heat" else ""
         self._say(
             f"<i>{_e(ans.prompt.text)}</i><br><b>{ans.count:,}</b> Gaussians &middot; {what}"
             f"<br><span style='color:#555'>highlight: {_e(self.mode)} &middot; "
-            f"{ans.seconds:.2f} s</span>"
+            f"{ans.seconds:.2f} s{legend}</span>"
         )
 
     def progress(self, done: int, total: int, what: str) -> None:
@@ -490,10 +710,107 @@ class Page:
         keys = {}
         for a in self.app.answers.history.answers():
             keys[f"{a.prompt.text} · {ROUTE_NAMES[a.route]} · {a.count:,}"] = a.key
+        named = self.app.answers.named()
         with self.lock:
             self.history_keys = keys
             self.history_box.options = [NONE, *keys]
             self.history_box.value = NONE
+            names = [SHOWN, *(n for n, _ in named)]
+            for box in (self.a_box, self.b_box):
+                keep = box.value if box.value in names else SHOWN
+                box.options = names
+                box.value = keep
+            rows = "".join(
+                f"<div><b>{_e(n)}</b>: {a.count:,} Gaussians ({_e(_kind(a))})</div>"
+                for n, a in named
+            )
+            self.named_html.content = self._small(rows or "None kept yet.")
+
+    def clear(self) -> None:
+        """No answer on display (undone back to the first step)."""
+        with self.lock:
+            if self.closed.is_set():
+                return
+            self.shown = None
+            self._redraw()
+            self.fly_button.visible = False
+            self._say("Nothing selected (the first step).")
+            self._show_evidence(None)
+        self._mask_wanted()
+
+    def steps(self, items: list[str], at: int) -> None:
+        """The page's steps, the one on display marked."""
+        rows = []
+        for i, line in enumerate(items):
+            text = f"{i}. {_e(line)}"
+            rows.append(f"<div><b>&#9656; {text}</b></div>" if i == at else f"<div>{text}</div>")
+        recent = rows[-8:] if at >= len(rows) - 8 else rows[max(0, at - 4) : at + 4]
+        more = f"<div>({len(rows)} steps)</div>" if len(rows) > len(recent) else ""
+        self.steps_html.content = self._small("Steps:" + "".join(recent) + more)
+
+    # -- the evidence -----------------------------------------------------------------------------
+
+    def _show_evidence(self, ans: Answer | None) -> None:
+        """The views behind the answer shown, with their weights, and the heaviest one's photo
+        with its mask over it."""
+        s = self.app.session
+        views = s.evidence(ans) if ans is not None else []
+        self.evidence_views = {f"{v} · weight {w:.2f}": v for v, w in views}
+        self.evidence_box.options = [NONE, *self.evidence_views]
+        if not views:
+            why = "No answer yet." if ans is None else (
+                "No view's mask is behind this answer (the fixed threshold, or answers combined)."
+            )  # fmt: skip
+            self.evidence_note.content = self._small(why)
+            self.evidence_box.value = NONE
+            self.evidence_image.visible = False
+            return
+        weights = ", ".join(f"{_e(v)} {w:.2f}" for v, w in views[:24])
+        more = f", ... ({len(views)} views)" if len(views) > 24 else ""
+        self.evidence_note.content = self._small(
+            f"<b>{len(views)}</b> views voted, by weight: {weights}{more}"
+        )
+        first = next(iter(self.evidence_views))
+        self.evidence_box.value = first
+        self._draw_evidence(ans, views[0][0])
+
+    def _evidence_picked(self) -> None:
+        value = self.evidence_box.value
+        if value == NONE:
+            return
+        view = self.evidence_views.get(value)
+        if view is None:
+            raise GoiError("view: not one of the views behind the answer shown")
+        shown = self.shown
+        if shown is not None:
+            self._draw_evidence(shown.answer, view)
+
+    def _draw_evidence(self, ans: Answer | None, view: str) -> None:
+        """The training photo of `view` with the mask it gave `ans` over it."""
+        if ans is None:
+            return
+        s = self.app.session
+        cam = s.scene.by_name.get(view)
+        if cam is None:
+            return
+        try:
+            photo = _fit(s.scene.load_image(cam), PHOTO_SIDE)
+        except GoiError as e:
+            self.evidence_note.content = self._small(_e(e))
+            return
+        mask = s.evidence_mask(ans, view)
+        if mask is not None:
+            import cv2
+
+            from stages.query.masks import overlay
+
+            h, w = photo.shape[:2]
+            if mask.shape != (h, w):
+                small = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
+                mask = small > 0
+            photo = overlay(photo.astype(np.float32) / 255.0, mask)
+        self.evidence_image.image = photo
+        self.evidence_image.visible = True
 
     # -- drawing ------------------------------------------------------------------------------
 
@@ -501,11 +818,17 @@ class Page:
         shown = self.shown
         selected = shown.answer.selected if shown is not None else None
         color = PREVIEW_TINT if shown is not None and shown.preview else self.color
-        self._apply(selected, color)
+        heat = None
+        if self.mode == "heat" and shown is not None:
+            score = self.app.session.heat(shown.answer)
+            heat = None if score is None else stretched(score)
+        self._apply(selected, color, heat)
 
-    def _apply(self, selected: np.ndarray | None, color: np.ndarray) -> None:
+    def _apply(
+        self, selected: np.ndarray | None, color: np.ndarray, heat: np.ndarray | None = None
+    ) -> None:
         app = self.app
-        p: Plan = plan(app.splats, app.chunks, self.drawn, selected, self.mode, color)
+        p: Plan = plan(app.splats, app.chunks, self.drawn, selected, self.mode, color, heat)
         with self.client.atomic():
             for i, words in p.chunk_words.items():
                 buf = app.buffers[i].copy()
@@ -679,6 +1002,34 @@ class Page:
         color = "#" + "".join(f"{int(round(255 * c)):02x}" for c in self.color)
         if self.app.answers.export(self.id, what, color):
             self.export_note.content = self._small(f"writing {_e(what)}...")
+
+
+def _unit_pair(value: object) -> bool:
+    """`value` is a canvas position: two finite numbers (viser's page sends 0..1; a little
+    outside is clamped)."""
+    return (
+        isinstance(value, list | tuple)
+        and len(value) == 2
+        and all(isinstance(x, int | float) and not isinstance(x, bool) for x in value)
+        and all(math.isfinite(x) and -1.0 <= x <= 2.0 for x in value)
+    )
+
+
+def _finite3(event: Any) -> bool:
+    """The click event's ray is two triples of finite numbers."""
+    for name in ("ray_origin", "ray_direction"):
+        v: Any = getattr(event, name, None)
+        if not (isinstance(v, list | tuple) and len(v) == 3):
+            return False
+        if not all(isinstance(x, int | float) and math.isfinite(x) for x in v):
+            return False
+    return True
+
+
+def _kind(ans: Answer) -> str:
+    return {"text": ROUTE_NAMES.get(ans.route, ans.route), "combine": "combined"}.get(
+        ans.kind, ans.kind
+    )
 
 
 def _pose_key(cam: Camera) -> tuple:

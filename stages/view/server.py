@@ -12,7 +12,8 @@ Two small, documented interventions close that:
    arguments, its `process_request` wrapped by goi's check (`stages.view.access`: Host, Origin,
    token; the cap on pages), its message size capped, and each accepted connection's `recv`
    wrapped so that a frame that is not a viser message (or a camera report that is not a
-   camera, an input update that is not a value) is dropped with one log line instead of ending
+   camera, an input update that is not a value, a click or box that is not a point of the
+   canvas) is dropped with one log line instead of ending
    the connection with a traceback. Refusals are logged, at most `LOG_LINES` a minute.
    Nothing else in the process sees the wrapper, and it is removed as soon as viser has bound
    its port. If viser stops calling `serve` this way (an upgrade), `serve()` finds its guard
@@ -161,6 +162,28 @@ def _not_a_message(raw: object, messages: Any) -> str | None:
         return _bad_camera(m)
     if isinstance(m, messages.GuiUpdateMessage):
         return _bad_gui_update(m)
+    if isinstance(m, messages.ScenePointerMessage):
+        return _bad_pointer(m, messages)
+    return None
+
+
+def _bad_pointer(m: Any, messages: Any) -> str | None:
+    """Why a scene click or box is not one viser's page sends (None when it is one): a click
+    has one canvas position and a finite ray, a box two positions; the modifier is one of
+    viser's key combinations."""
+    import typing
+
+    kinds = {"click": 1, "rect-select": 2}
+    n = kinds.get(m.event_type) if isinstance(m.event_type, str) else None
+    if n is None:
+        return "a pointer event of no known kind"
+    pos = m.screen_pos
+    if not (isinstance(pos, list | tuple) and len(pos) == n and all(_finite(p, 2) for p in pos)):
+        return "a pointer event whose position is not a point of the canvas"
+    if n == 1 and not (_finite(m.ray_origin, 3) and _finite(m.ray_direction, 3)):
+        return "a click whose ray is not finite numbers"
+    if m.modifier is not None and m.modifier not in typing.get_args(messages.KeyModifier):
+        return "a pointer event with a key modifier viser does not send"
     return None
 
 

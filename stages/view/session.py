@@ -34,11 +34,12 @@ import numpy as np
 
 from stages.core.artifacts import atomic_path, input_digest, sha256_file
 from stages.core.errors import GoiError
-from stages.core.files import make_dir, read_json, refuse_inputs
+from stages.core.files import make_dir, refuse_inputs
 from stages.core.owned import OwnedDir
-from stages.core.params import AT_LEAST_1, Choice, Range
+from stages.core.params import AT_LEAST_1, Choice, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
+from stages.models.grounded import Sam
 from stages.query.export_ply import PlyEditParams, PlyExportRun, export_ply, parse_color
 from stages.query.hyperplanes import (
     HyperplaneRun,
@@ -48,11 +49,29 @@ from stages.query.hyperplanes import (
 )
 from stages.query.lift_answer import LiftedAnswer, RefineParams, rgb_and_selection
 from stages.query.lift_files import answer_prompt, write_lifted_selection, write_masks
-from stages.query.lift_math import LiftParams, ViewEvidence
+from stages.query.lift_math import LiftParams, ViewEvidence, vote_share
 from stages.query.masks import MaskParams, MaskRun, mask_files, mask_of, overlay, render_masks
 from stages.query.osh import THRESHOLD, Hyperplane, HyperplaneParams, threshold_plane
 from stages.query.pipeline import PromptSources
-from stages.query.prompts import Prompt, check_prompt, text_embedding
+from stages.query.ply_labels import LabelLayer, check_names, write_labels_ply
+from stages.query.point_files import write_pointed_selection
+from stages.query.pointing import (
+    BoxPrompt,
+    Click,
+    IndexedEmbeddings,
+    PointAnswer,
+    PointParams,
+    SamImages,
+    sam_of,
+)
+from stages.query.prompts import (
+    Prompt,
+    TextEmbeddings,
+    check_prompt,
+    read_prompt_table,
+    read_text_embeddings,
+    text_embedding,
+)
 from stages.query.res import (
     NothingFound,
     ResFiles,
@@ -62,13 +81,15 @@ from stages.query.res import (
     growing_index,
 )
 from stages.query.res_index import GrowingIndex
-from stages.query.selection import Selection, select, write_selection
+from stages.query.selection import Selection, plane_probability, select, write_selection
 from stages.render.rasterizer import KEEP_VIEWS_BYTES, Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.formats.inria import write_inria
 from stages.scene.scene import Scene
 from stages.semantics.decode import SemanticRenderer
 from stages.semantics.field import Field, load_field_for
+from stages.view.pointed import KeptEmbeddings, ViewMasks, ViewPointer, refuse_pointer
+from stages.view.selections import OPS, combine, refined_score
 from stages.view.worker import Control
 
 ROUTES = ("osh", "threshold", "lifted", "lifted_fieldless")
@@ -77,6 +98,8 @@ ROUTE_NAMES = {
     "threshold": "fixed threshold",
     "lifted": "lifted",
     "lifted_fieldless": "lifted, field-free",
+    "pointed": "SAM, lifted",  # clicks and boxes
+    "combined": "combined",  # answers combined (union, intersection, difference, invert)
 }
 EXPORTS = ("selection", "subset", "invert", "highlight", "masks")
 #: The file in --out that lists what goi view wrote there (path -> SHA-256): a file is only
@@ -128,6 +151,18 @@ class ViewRun:
     max_splats: Annotated[int, AT_LEAST_1] = 2_000_000
     """Most Gaussians sent to the browser; a bigger scene is sent as its most opaque and
     largest Gaussians (answers are always computed on all of them)."""
+    new_views: Annotated[int, Range(ge=1, le=10000)] = 4
+    """With --bundle's SAM: at most this many views whose SAM image embedding is not there
+    yet (not in --res-index, not kept) a click or box encodes each time it chooses views
+    (seconds each on a CPU; the views already there are asked first), so that the first
+    click on a new scene answers in seconds and each click adds a few views."""
+    sam_cache_mib: Annotated[int, Range(ge=1, le=1 << 20)] = 512
+    """Without --res-index: memory for the SAM image embeddings of the views clicks and boxes
+    need (MiB; about 4 MiB a view for a SAM of ViT or TinyViT size), the least recently used
+    going first. With --res-index they are read from the index (and added to it)."""
+    undo_mib: Annotated[int, Range(ge=1, le=1 << 20)] = 64
+    """Memory for each page's steps (undo and redo, MiB): the oldest steps go first. Named
+    selections are kept within --history-mib (naming one past it is refused)."""
 
 
 @dataclass
@@ -146,7 +181,22 @@ class Answer:
     seconds: float = 0.0
     views_done: int = 0
     views_total: int = 0
-    kind: str = "text"
+    kind: str = "text"  # "text", "click", "box", "combine"
+    #: [G] float32 in [0, 1], what heat mode colours, for answers whose score is not their
+    #: evidence's (pointed: the last round's vote share; combined: its operands'), else None
+    score: np.ndarray | None = None
+    #: the views behind the answer with their weight in its vote (pointed answers; a text
+    #: answer's come from its evidence: ViewSession.evidence)
+    weights: dict[str, float] | None = None
+    #: each view's mask behind the answer, shrunk for the page (None: none kept)
+    masks: ViewMasks | None = None
+    #: the text answer a pointed answer refined (at the root of a chain of clicks), for its
+    #: selection artifact's mode and lifted record
+    refines: Answer | None = None
+    #: what made a pointed answer (stages.query.pointing's record) or a combined one
+    record: dict | None = None
+    #: the RES mask files of a text answer (read again for the evidence panel)
+    res_files: ResFiles | None = None
 
     @property
     def count(self) -> int:
@@ -166,6 +216,12 @@ class Answer:
 
 def _arrays(ans: Answer) -> Iterator[np.ndarray]:
     yield ans.selected
+    if ans.score is not None:
+        yield ans.score
+    if ans.masks is not None:
+        yield from (bits for _, bits in ans.masks.packed.values())
+    if ans.refines is not None:
+        yield from _arrays(ans.refines)
     planes = [ans.plane]
     if ans.lifted is not None:
         lf = ans.lifted.lifted
@@ -242,25 +298,6 @@ class MaskView:
     overlay: np.ndarray  # [H, W, 3] uint8, as goi render-mask writes <view>.overlay.png
 
 
-def load_prompt_table(path: Path) -> dict[str, str]:
-    """A room's prompts.json -> {text: id}."""
-    raw = read_json(path, "does not exist (--prompts)")
-    if not isinstance(raw, list):
-        raise GoiError(f"{path}: expected a JSON list of {{id, text}} prompts")
-    table: dict[str, str] = {}
-    for i, p in enumerate(raw):
-        if not (
-            isinstance(p, dict) and isinstance(p.get("id"), str) and isinstance(p.get("text"), str)
-        ):
-            raise GoiError(f"{path}: prompt {i} is not an object with string 'id' and 'text'")
-        text = check_prompt(p["text"], f"{path}: prompt {i} 'text'")
-        from stages.query.prompts import check_plain_name
-
-        check_plain_name(p["id"], f"{path}: prompt {i} 'id'", "a subdirectory of --res-masks")
-        table.setdefault(text, p["id"])
-    return table
-
-
 class ViewSession:
     """Everything loaded and checked once, before the server starts; answers on demand.
 
@@ -274,6 +311,7 @@ class ViewSession:
         sources: PromptSources,
         run: ViewRun,
         report: Report = SILENT,
+        points: PointParams | None = None,
     ):
         self.scene = scene
         self.field_path = Path(field_path) if field_path is not None else None
@@ -290,7 +328,7 @@ class ViewSession:
         inputs = [scene.ply_path, *scene.camera_files, field_path, sources.text_embeddings,
                   sources.bundle, sources.res_masks, sources.res_index, run.prompts]  # fmt: skip
         refuse_inputs({"--out": [self.out.root]}, inputs)
-        self.prompt_ids = load_prompt_table(run.prompts) if run.prompts else {}
+        self.prompt_ids = read_prompt_table(run.prompts) if run.prompts else {}
         self.bundle: Bundle | None = load_bundle(sources.bundle) if sources.bundle else None
         self.index: GrowingIndex | None = None
         self._index_seen: tuple[int, ...] | None = None
@@ -301,19 +339,24 @@ class ViewSession:
             self.bundle.check_res()
         if sources.res_masks is not None and not Path(sources.res_masks).is_dir():
             raise GoiError(f"--res-masks: {sources.res_masks} is not a directory")
+        # clicks and boxes: the bundle's SAM, opened and checked before serving
+        self.sam: Sam | None = sam_of(self.bundle) if self.bundle and self.bundle.has_sam else None
+        params = points or PointParams()
+        check_params(params)
+        self.point_params = dataclasses.replace(params, new_views=run.new_views)
+        self._kept_embeddings: KeptEmbeddings | None = None
         if run.route is not None and self.routes()[run.route] is not None:
             raise GoiError(f"--route: {run.route} is not possible here: {self.routes()[run.route]}")
         self.default_route()  # inputs that can answer nothing are refused before the field loads
+        self.embeddings: TextEmbeddings | None = None
         if sources.text_embeddings is not None:  # read once: a bad file is refused now
-            from stages.query.prompts import load_text_embeddings
-
-            self.embeddings = load_text_embeddings(sources.text_embeddings)
+            self.embeddings = read_text_embeddings(sources.text_embeddings)
         self.field: Field | None = None
         self.renderer: SemanticRenderer | None = None
         if self.field_path is not None:
             self.field = load_field_for(self.field_path, scene.ply_digest())
-            if sources.text_embeddings is not None:
-                dim = next(iter(self.embeddings.values())).size
+            if self.embeddings is not None:
+                dim = next(iter(self.embeddings.vectors.values())).size
                 if dim != self.field.codebook.shape[1]:
                     raise GoiError(
                         f"{sources.text_embeddings}: embeddings of {dim} dimensions, the field's "
@@ -341,10 +384,10 @@ class ViewSession:
 
     @property
     def has_res(self) -> bool:
-        return (
-            self.sources.res_masks is not None
-            or self.index is not None
-            or (self.bundle is not None and self.bundle.has_res)
+        """RES masks for text prompts: mask files, or a bundle's RES (run on the photos, or
+        from --res-index; an index of a SAM alone answers clicks and boxes only)."""
+        return self.sources.res_masks is not None or (
+            self.bundle is not None and self.bundle.has_res
         )
 
     def routes(self) -> dict[str, str | None]:
@@ -364,17 +407,21 @@ class ViewSession:
             "lifted_fieldless": need_res,
         }
 
-    def default_route(self) -> str:
+    def default_route(self) -> str | None:
+        """The route a page starts on; None when no text prompt can be answered and the
+        bundle's SAM answers clicks and boxes alone."""
         if self.run.route is not None:
             return self.run.route
         allowed = [r for r, why in self.routes().items() if why is None]
         for r in ("lifted", "lifted_fieldless", "threshold"):
             if r in allowed:
                 return r
+        if self.sam is not None:
+            return None
         raise GoiError(
             "goi view has nothing to answer a prompt with: give --field with --text-embeddings "
             "(or a --bundle with a text encoder), or RES masks (--res-masks, --res-index, or a "
-            "--bundle with a RES)"
+            "--bundle with a RES), or a --bundle with a SAM for clicks and boxes"
         )
 
     def suggestions(self) -> list[str]:
@@ -395,28 +442,10 @@ class ViewSession:
         return Prompt(t, self.prompt_ids.get(t))
 
     def text(self, prompt: str) -> tuple[np.ndarray, str]:
-        """The prompt's embedding and where it came from, as goi select makes it."""
+        """The prompt's embedding and where it came from, as goi select makes it (the file
+        read once, the bundle loaded once)."""
         assert self.field is not None
-        dim = self.field.codebook.shape[1]
-        if self.sources.text_embeddings is not None:
-            if prompt not in self.embeddings:  # the CLI's own message
-                return text_embedding(prompt, dim, self.sources.text_embeddings, None)
-            vec = self.embeddings[prompt]
-            if vec.shape != (dim,):
-                raise GoiError(
-                    f"{self.sources.text_embeddings}: the prompt embedding has {vec.size} "
-                    f"dimensions but the field's codebook has {dim}"
-                )
-            return vec, f"file:{Path(self.sources.text_embeddings).name}"
-        if self.bundle is None:
-            return text_embedding(prompt, dim, None, None)  # (refused: no text source)
-        vec = self.bundle.encode_text(prompt)
-        if vec.shape != (dim,):
-            raise GoiError(
-                f"{self.sources.bundle}: the prompt embedding has {vec.size} dimensions but the "
-                f"field's codebook has {dim}; the text and image features must share one space"
-            )
-        return vec.astype(np.float32), f"bundle:{self.bundle.name}"
+        return text_embedding(prompt, self.field.codebook.shape[1], self.embeddings, self.bundle)
 
     def res(self, prompt: Prompt, rast: Rasterizer) -> ResSource:
         """The prompt's RES masks, as goi select takes them (mask files in the prompt's own
@@ -571,7 +600,10 @@ class ViewSession:
             none = np.zeros(self.scene.gaussians.count, bool)
             return Answer(prompt, route, none, "the paper's OSH: the RES found nothing", True)
         label = "the paper's OSH (cached)" if cached else "the paper's OSH"
-        return Answer(prompt, route, select(self.field, plane, self.entry), label, True, plane)
+        views = _json_list(plane.info.get("views"))
+        kept, files = _evidence_masks(masks, views)
+        return Answer(prompt, route, select(self.field, plane, self.entry), label, True, plane,
+                      masks=kept, res_files=files)  # fmt: skip
 
     def _lifted_answer(
         self, prompt: Prompt, route: str, control: Control, report: Report, t0: float
@@ -601,8 +633,140 @@ class ViewSession:
                             report, partial=partial, refine=every)  # fmt: skip
         n = len(ans.views)
         label = f"{ROUTE_NAMES[route]}, {n} views"
+        kept, files = _evidence_masks(masks, ans.views)
         return Answer(prompt, route, ans.selected, label, True, lifted=ans, views_done=n,
-                      views_total=n)  # fmt: skip
+                      views_total=n, masks=kept, res_files=files)  # fmt: skip
+
+    # -- clicks and boxes, and answers combined ------------------------------------------
+
+    def check_point(self, kind: str) -> None:
+        """A click or box is refused, before any work, when this viewer cannot answer it."""
+        refuse_pointer(self.sam, kind)
+
+    def sam_images(self) -> SamImages:
+        """Where SAM's image embeddings come from: the RES index (grown as clicks need views),
+        else the photos, encoded when first needed and kept within --sam-cache-mib."""
+        assert self.sam is not None
+        if self.index is not None:
+            return IndexedEmbeddings(self.index, self.sam)
+        if self._kept_embeddings is None:
+            self._kept_embeddings = KeptEmbeddings(
+                self.scene, self.sam, self.run.sam_cache_mib << 20, self.report.log
+            )
+        return self._kept_embeddings
+
+    def point(
+        self,
+        clicks: list[Click],
+        boxes: list[BoxPrompt],
+        base: Answer | None,
+        cams: dict[str, Camera],
+        granularity: str,
+        text: str,
+        control: Control | None = None,
+    ) -> Answer:
+        """The answer of clicks and boxes (at the page's cameras `cams`, or training views)
+        refining `base` (the answer on display, or nothing), as `goi select --click/--box`
+        answers them: stages.query.pointing, with this viewer's --new-views. Its partial
+        answers (the part, the object growing) go to control.partial; `text` is how the
+        page writes it."""
+        control = control or Control()
+        kind = "click" if clicks else "box"
+        refuse_pointer(self.sam, kind)
+        assert self.sam is not None
+        params = dataclasses.replace(self.point_params, granularity=granularity)
+        check_params(params)
+        prompt = Prompt(text)
+        t0 = time.perf_counter()
+
+        def check() -> None:
+            control.check()
+            control.pause()
+
+        def partial(sel: np.ndarray, label: str) -> None:
+            control.partial(Answer(prompt, "pointed", sel.copy(), label, False, kind=kind,
+                                   seconds=time.perf_counter() - t0))  # fmt: skip
+
+        base_sel = base.selected if base is not None and base.count else None
+        self.fit_view_cache()
+        with self._index_in_use():
+            pointer = ViewPointer(self.scene, self.rast, self.sam, self.sam_images(), params,
+                                  {**self.scene.by_name, **cams}, self.report)  # fmt: skip
+            got: PointAnswer = pointer.answer(clicks, boxes, base_sel, check, partial)
+        record = dict(got.record)
+        record["cameras"] = {n: _camera_record(c) for n, c in cams.items()}
+        score = None
+        last = pointer.last
+        if last is not None:
+            plus = bool(boxes) or clicks[-1].positive
+            base_score = self.heat(base) if base_sel is not None else None
+            score = refined_score(base_sel, base_score, last.share, last.evident, plus)
+        refines = None
+        if base is not None and base_sel is not None:
+            refines = base if base.kind == "text" else base.refines
+        views = sum(len(a["views"]) for a in record["answers"])
+        return Answer(prompt, "pointed", got.selected, f"SAM in {views} views, lifted", True,
+                      seconds=time.perf_counter() - t0, kind=kind, score=score,
+                      weights=last.weights if last else None, masks=last.masks if last else None,
+                      refines=refines, record=record)  # fmt: skip
+
+    def combine(self, op: str, a: Answer, b: Answer | None, text: str) -> Answer:
+        """`op` (stages.view.selections.OPS) of answers `a` and `b` (b None for invert),
+        with their heat scores; `text` is how the page writes it."""
+        if op not in OPS:
+            raise GoiError(f"combine: {op!r} is not one of {', '.join(OPS)}")
+        if (op == "invert") != (b is None):
+            raise GoiError("combine: invert takes one answer, the others two")
+        sel, score = combine(op, a.selected, None if b is None else b.selected, self.heat(a),
+                             None if b is None else self.heat(b))  # fmt: skip
+        record = {"op": op, "a": a.prompt.text, "b": None if b is None else b.prompt.text}
+        return Answer(Prompt(text), "combined", sel, f"{op} of answers", True, kind="combine",
+                      score=score, record=record)  # fmt: skip
+
+    def heat(self, answer: Answer | None) -> np.ndarray | None:
+        """[G] float32 in [0, 1]: each Gaussian's score in `answer`, what heat mode colours
+        (a lifted answer's vote share, the field's probability under its plane where no mask
+        decides; the paper's routes: that probability; pointed and combined answers: their
+        own, Answer.score); None for no answer."""
+        if answer is None:
+            return None
+        if answer.score is not None:
+            return answer.score
+        field_p = None
+        plane = answer.plane or (answer.lifted.plane if answer.lifted is not None else None)
+        if plane is not None and self.field is not None:
+            field_p = plane_probability(self.field, plane, self.entry)
+        if answer.lifted is not None:
+            return vote_share(answer.lifted.lifted, self.lp, field_p)
+        if field_p is not None:
+            return field_p
+        return answer.selected.astype(np.float32)
+
+    def evidence(self, answer: Answer) -> list[tuple[str, float]]:
+        """The views behind `answer` with their weight in its vote, heaviest first: a lifted
+        answer's views and confidences, a pointed answer's last round's, the paper's OSH's
+        fitting views (weight 1); none for the threshold route or a combination."""
+        if answer.weights is not None:
+            weights = dict(answer.weights)
+        elif answer.lifted is not None:
+            weights = dict(answer.lifted.lifted.confidence)
+        elif answer.plane is not None and answer.route == "osh":
+            weights = {v: 1.0 for v in _json_list(answer.plane.info.get("views"))}
+        else:
+            weights = {}
+        return sorted(weights.items(), key=lambda kv: (-kv[1], kv[0]))
+
+    def evidence_mask(self, answer: Answer, view: str) -> np.ndarray | None:
+        """[h, w] bool: the mask `view` gave `answer` (SAM's or the RES's), at the size the
+        page shows photos at; None when it was not kept."""
+        if answer.masks is not None and (m := answer.masks.get(view)) is not None:
+            return m
+        cam = self.scene.by_name.get(view)
+        if answer.res_files is not None and cam is not None:
+            from stages.view.pointed import shrink
+
+            return shrink(answer.res_files.mask(cam))
+        return None
 
     # -- the 2D answer at a camera -------------------------------------------------------
 
@@ -677,8 +841,25 @@ class ViewSession:
                                    True, answer.prompt.text)  # fmt: skip
             return
         inputs = {"ply": self.scene.ply_digest()}
-        if self.field_path is not None:
+        text_root = answer.refines if answer.kind in ("click", "box") else answer
+        if (
+            self.field_path is not None
+            and text_root is not None
+            and text_root.route in ("osh", "threshold", "lifted")
+        ):
             inputs.update(input_digest("field", self.field_path))
+        if answer.kind in ("click", "box"):
+            # as goi select --click writes it: the text answer it refined (its mode, its
+            # lifted record and evidence), the clicks' record in group 'pointed'
+            root = answer.refines
+            lifted = evidence = None
+            if root is not None and root.lifted is not None:
+                lifted = root.lifted.record(self.lp)
+                evidence = (root.lifted.lifted.S1, root.lifted.lifted.S0)
+            got = PointAnswer(answer.selected, answer.record or {})
+            write_pointed_selection(path, got, self.scene, answer.prompt.text, mode, inputs,
+                                    True, lifted, evidence)  # fmt: skip
+            return
         write_selection(path, answer.selected, answer.prompt.text, mode, self.scene.ply_digest(),
                         inputs, force=True)  # fmt: skip
 
@@ -689,6 +870,31 @@ class ViewSession:
             render_masks(self.renderer, answer.plane, cams, MaskParams(), MaskRun(d, force=True))
             return
         write_masks(self.rast, answer.selected, cams, d, True, True)
+
+    def export_labels(self, named: list[tuple[str, Answer]]) -> Path:
+        """The scene's PLY with the named selections as labels (`write_labels_ply`: a label
+        and a score per Gaussian, the score what heat mode shows) as OUT/labels/labels-NNN.ply,
+        through the owned output directory."""
+        if not named:
+            raise GoiError("labels: keep an answer under a name first")
+        check_names([n for n, _ in named], "labels")
+        g = self.scene.gaussians
+        layers = [LabelLayer(n, a.selected, self.heat(a)) for n, a in named]
+        d = self.out.root / "labels"
+        estimate = self.scene.ply_path.stat().st_size + 8 * g.count
+
+        def write() -> Path:
+            make_dir(d, "--out")
+            taken = {p.stem for p in d.glob("*.ply")}
+            i = 1
+            while f"labels-{i:03d}" in taken:
+                i += 1
+            path = d / f"labels-{i:03d}.ply"
+            write_labels_ply(g, layers, path, {"ply": self.scene.ply_digest()}, False, "labels")
+            return path
+
+        path, _ = self.out.write(write, estimate=estimate, dirs=[d])
+        return path
 
     def save_camera(self, cam: Camera) -> Path:
         """The browser's camera as an INRIA cameras.json under OUT/cameras/, for
@@ -714,6 +920,42 @@ class ViewSession:
         return path
 
 
+def _evidence_masks(masks: ResSource, views: list[str]) -> tuple[ViewMasks | None, ResFiles | None]:
+    """What a text answer keeps of its views' RES masks for the evidence panel: the masks a
+    model made, shrunk (its source keeps them in `computed`), or the mask files' source
+    (read again when asked)."""
+    if isinstance(masks, ResFiles):
+        return None, masks
+    computed = getattr(masks, "computed", None)
+    if not computed:
+        return None, None
+    kept = ViewMasks()
+    for v in views:
+        if v in computed:
+            kept.add(v, computed[v])
+    return kept, None
+
+
+def _json_list(value: object) -> list[str]:
+    """A plane's recorded views (a JSON list) as names; [] when absent."""
+    import json
+
+    try:
+        out = json.loads(value) if isinstance(value, str) else value
+    except ValueError:
+        return []
+    return [str(v) for v in out] if isinstance(out, list) else []
+
+
+def _camera_record(cam: Camera) -> dict:
+    """A page's camera as a pointed answer's record keeps it (to click there again from the
+    CLI: an INRIA camera file of it, goi select --camera-file)."""
+    return {
+        "width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
+        "cy": cam.cy, "R": np.asarray(cam.R).tolist(), "t": np.asarray(cam.t).tolist(),
+    }  # fmt: skip
+
+
 def _identity(path: Path) -> tuple[int, ...]:
     """A file's identity (device, inode, size, modification time); () when it is not there."""
     try:
@@ -724,7 +966,12 @@ def _identity(path: Path) -> tuple[int, ...]:
 
 
 def _mode(answer: Answer) -> str:
-    """The selection artifact's mode, as goi select records it."""
+    """The selection artifact's mode, as goi select records it: a pointed answer's is the text
+    answer's it refined ('pointed' without one); a combination's 'combined'."""
+    if answer.kind in ("click", "box"):
+        return "pointed" if answer.refines is None else _mode(answer.refines)
+    if answer.kind == "combine":
+        return "combined"
     if answer.lifted is not None:
         return "lifted"
     return "threshold" if answer.route == "threshold" else "hyperplane"

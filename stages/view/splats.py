@@ -9,6 +9,7 @@ Gaussians in few chunks whatever order the PLY holds them in.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,8 +20,8 @@ from stages.scene.rotation import quats_to_rotmats
 #: Gaussians per chunk: 32 bytes each on the wire, so 1 MiB a chunk.
 CHUNK = 32768
 #: The highlight modes: tint (the selection recoloured), isolate (only the selection drawn),
-#: hide (the scene without the selection).
-MODES = ("tint", "isolate", "hide")
+#: hide (the scene without the selection), heat (every Gaussian coloured by its score).
+MODES = ("tint", "isolate", "hide", "heat")
 #: How much of the tint colour a selected splat takes (the rest is its own colour, so the
 #: object stays recognisable).
 TINT_SHARE = 0.65
@@ -109,6 +110,30 @@ def highlighted(
     return rgb, op
 
 
+#: Heat mode's colour map, from a score just above 0 to 1 (the answer's cut in the middle,
+#: yellow): blue, cyan, yellow, orange, red, linearly between them.
+HEAT_STOPS = np.array(
+    [[0.15, 0.25, 0.9], [0.0, 0.75, 0.9], [1.0, 0.9, 0.1], [1.0, 0.5, 0.0], [0.85, 0.0, 0.0]],
+    np.float32,
+)
+#: In heat mode a Gaussian that scores 0 keeps this share of its own colour's brightness, in
+#: grey: the room stays readable around the scores.
+HEAT_GREY = 0.5
+
+
+def heat_colors(rgbs: np.ndarray, heat: np.ndarray) -> np.ndarray:
+    """[S, 3] the colours of splats [S, 3] in heat mode, for their scores `heat` [S] in [0, 1]
+    (already stretched about the cut: stages.view.selections.stretched): 0 a dim grey of the
+    splat's own colour, above it the HEAT_STOPS map."""
+    t = np.clip(np.asarray(heat, np.float32), 0.0, 1.0)
+    x = t * (len(HEAT_STOPS) - 1)
+    i = np.minimum(x.astype(np.int64), len(HEAT_STOPS) - 2)
+    f = (x - i)[:, None]
+    mapped = (1 - f) * HEAT_STOPS[i] + f * HEAT_STOPS[i + 1]
+    grey = HEAT_GREY * np.asarray(rgbs, np.float32).mean(1, keepdims=True)
+    return np.where((t > 0)[:, None], mapped, np.repeat(grey, 3, axis=1)).astype(np.float32)
+
+
 def to_uint8(x: np.ndarray) -> np.ndarray:
     """0..1 floats -> uint8 as viser converts them (clip, scale, truncate)."""
     return np.clip(np.asarray(x, np.float32) * 255.0, 0, 255).astype(np.uint8)
@@ -151,13 +176,18 @@ def plan(
     selected: np.ndarray | None,
     mode: str,
     color: np.ndarray,
+    heat: np.ndarray | None = None,
 ) -> Plan:
     """The chunks to resend (those whose colours change from `shown`, what each chunk shows
-    now) to show `selected` [G] bool (None: nothing) in `mode`."""
+    now) to show `selected` [G] bool (None: nothing) in `mode`; heat mode colours every
+    splat by `heat` [G] in [0, 1] (None: the selection as 0 / 1)."""
     if mode not in MODES:
         raise ValueError(f"unknown highlight mode {mode!r}")
     sel_s = np.zeros(splats.count, bool) if selected is None else selected[splats.index]
     color = np.asarray(color, np.float32)
+    heat_s = None
+    if mode == "heat":
+        heat_s = to_uint8(sel_s if heat is None else np.asarray(heat)[splats.index])
     words: dict[int, np.ndarray] = {}
     keys: list[bytes] = []
     for i, c in enumerate(chunks):
@@ -166,11 +196,15 @@ def plan(
         key = b"base"
         if recolour:
             key = mode.encode() + color.tobytes() + np.packbits(s).tobytes()
+        elif heat_s is not None:  # every chunk, by its splats' scores
+            key = b"heat" + hashlib.blake2b(heat_s[c].tobytes(), digest_size=16).digest()
         keys.append(key)
         if key != shown[i]:
             rgb, op = splats.rgbs[c], splats.opacities[c]
             if recolour:
                 rgb, op = highlighted(rgb, op, s, mode, color)
+            elif heat_s is not None:
+                rgb = heat_colors(rgb, heat_s[c].astype(np.float32) / 255.0)
             words[i] = rgba_words(rgb, op)
     overlay = np.zeros(0, np.int64)
     if selected is not None and mode == "isolate":

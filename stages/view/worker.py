@@ -142,10 +142,11 @@ class Worker:
             self._running.cancel()
 
     def pending(self, match: Callable[[Hashable], bool]) -> int:
-        """How many jobs of the owners `match` names are waiting or running."""
+        """How many jobs of the owners `match` names are waiting or running, and not
+        cancelled (a cancelled job stops at its next step)."""
         with self._cond:
             jobs = [*self._waiting.values(), *([self._running] if self._running else [])]
-            return sum(1 for j in jobs if match(j.owner))
+            return sum(1 for j in jobs if match(j.owner) and not j.control.cancelled.is_set())
 
     def busy(self) -> bool:
         with self._cond:

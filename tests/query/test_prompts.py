@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from stages.core.errors import GoiError
-from stages.query.prompts import check_prompt, safe_name, text_embedding, view_file_name
+from stages.query.prompts import (
+    check_prompt,
+    read_prompt_table,
+    read_text_embeddings,
+    safe_name,
+    text_embedding,
+    view_file_name,
+)
 
 
 @pytest.mark.parametrize(
@@ -51,3 +58,37 @@ def test_text_embeddings_file(tmp_path):
     f.write_text("{not json")
     with pytest.raises(GoiError, match="not valid JSON"):
         text_embedding("sofa", 2, embeddings=f)
+
+
+def test_a_table_read_once_answers_as_its_file(tmp_path):
+    """goi view reads --text-embeddings once; its answers and refusals are the CLI's."""
+    f = tmp_path / "t.json"
+    f.write_text(json.dumps({"sofa": [3.0, 4.0]}))
+    table = read_text_embeddings(f)
+    for src in (f, table):
+        v, where = text_embedding("sofa", 2, embeddings=src)
+        np.testing.assert_allclose(v, [0.6, 0.8], atol=1e-7)
+        assert where == "file:t.json"
+        with pytest.raises(GoiError, match=f"^{f}: no embedding for prompt 'chair'"):
+            text_embedding("chair", 2, embeddings=src)
+        with pytest.raises(GoiError, match="has 2 dimensions but the field's codebook has 3"):
+            text_embedding("sofa", 3, embeddings=src)
+    f.write_text(json.dumps({"sofa": [1.0, 0.0]}))  # read once: the table keeps what it read
+    np.testing.assert_allclose(text_embedding("sofa", 2, embeddings=table)[0], [0.6, 0.8])
+
+
+def test_a_prompts_file_is_checked(tmp_path):
+    bad = [
+        ({"id": "p1", "text": "x"}, "JSON list"),
+        ([{"id": "../x", "text": "a"}], "not a plain name"),
+        ([{"id": "p1", "text": ""}], "empty"),
+        ([{"id": 3, "text": "a"}], "string 'id'"),
+    ]
+    for raw, message in bad:
+        (tmp_path / "p.json").write_text(json.dumps(raw))
+        with pytest.raises(GoiError, match=message):
+            read_prompt_table(tmp_path / "p.json")
+    (tmp_path / "p.json").write_text(
+        json.dumps([{"id": "p1", "text": " a "}, {"id": "p2", "text": "a"}])
+    )
+    assert read_prompt_table(tmp_path / "p.json") == {"a": "p1"}

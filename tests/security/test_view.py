@@ -166,6 +166,43 @@ def test_frames_that_are_not_messages_are_dropped_with_one_line(served):
     assert not any("Traceback" in line for line in log.lines)
 
 
+@pytest.mark.parametrize(
+    "event, why",
+    [
+        (dict(event_type="rect-select", ray_origin=None, ray_direction=None,
+              screen_pos=((0.1, 0.2),)), "not a point of the canvas"),
+        (dict(event_type="click", ray_origin=None, ray_direction=None,
+              screen_pos=((0.1, 0.2),)), "ray is not finite"),
+        (dict(event_type="click", ray_origin=(0.0, 0.0, float("inf")),
+              ray_direction=(0.0, 0.0, 1.0), screen_pos=((0.5, 0.5),)), "ray is not finite"),
+        (dict(event_type="double-click", ray_origin=None, ray_direction=None,
+              screen_pos=((0.1, 0.2),)), "no known kind"),
+        (dict(event_type="click", ray_origin=(0.0, 0.0, 0.0), ray_direction=(0.0, 0.0, 1.0),
+              screen_pos=((0.5, 0.5),), modifier="ctrl+super"), "key modifier"),
+    ],
+)  # fmt: skip
+def test_a_click_or_box_that_is_not_a_point_is_dropped_on_the_wire(served, event, why):
+    """What viser's page never sends as a scene click or box (viser's own handler would fail
+    on it, a traceback in the log) is dropped with one line; the page goes on."""
+    from viser import _messages
+
+    from tests.view.served import wait_for
+
+    app, url, log = served
+    c = _client(url)
+    try:
+        wait_for(lambda: app.pages, "the page built")
+        c.send(_messages.ScenePointerMessage(**{"modifier": None, **event}))
+        wait_for(lambda: log.has(why), "the drop logged")
+        page = next(iter(app.pages.values()))
+        before = page.client.camera.position
+        c.report_camera(position=(0.5, 0.0, 0.0))
+        wait_for(lambda: tuple(page.client.camera.position) != tuple(before), "camera moved")
+    finally:
+        c.close()
+    assert not any("Traceback" in line for line in log.lines)
+
+
 def test_pages_past_the_cap_are_refused(served):
     from websockets.exceptions import InvalidStatus
 

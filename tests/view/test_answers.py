@@ -17,7 +17,7 @@ import pytest
 from stages.core.errors import GoiError
 from stages.core.files import output_lock
 from stages.query.prompts import Prompt, check_prompt
-from stages.view.answers import Answers, Shown
+from stages.view.answers import SHOWN, Answers, Shown
 from stages.view.session import Answer
 from stages.view.worker import Control, Worker
 from tests.query.test_res_index import photographed  # noqa: F401  (a scene with photos)
@@ -42,6 +42,8 @@ class Scripted:
         self.exported: list[tuple[str, str]] = []
         self.export_gate = threading.Event()
         self.export_gate.set()
+        self.boxes_only = False
+        self.pointed: list[tuple] = []
 
     def check_prompt(self, text: str) -> str:
         return check_prompt(text, "prompt")
@@ -54,6 +56,29 @@ class Scripted:
 
     def answer(self, text: str, route: str, control: Control) -> Answer:
         return self.plan.get(text, lambda c: answer_of(text))(control)
+
+    def check_point(self, kind: str) -> None:
+        if kind == "click" and self.boxes_only:
+            raise GoiError("click: the bundle's SAM takes boxes only")
+
+    def point(self, clicks, boxes, base, cams, granularity, text, control):  # noqa: ANN001, ANN201
+        """A click answers its pixel's column as a band of 10 Gaussians, added to the base."""
+        self.pointed.append((clicks, boxes, base, granularity))
+        sel = np.zeros(G, bool) if base is None else base.selected.copy()
+        for c in clicks:
+            band = slice(int(c.u), int(c.u) + 10)
+            if c.positive:
+                sel[band] = True
+            else:
+                sel[band] = False
+        kind = "click" if clicks else "box"
+        return Answer(Prompt(text), "pointed", sel, "scripted", True, kind=kind)
+
+    def combine(self, op, a, b, text):  # noqa: ANN001, ANN201
+        from stages.view.selections import combine
+
+        sel, score = combine(op, a.selected, None if b is None else b.selected)
+        return Answer(Prompt(text), "combined", sel, "scripted", True, kind="combine", score=score)
 
     def index_lock_path(self):  # noqa: ANN201
         return self.lock_path
@@ -99,6 +124,16 @@ class Recorder:
     def history_changed(self) -> None:
         self._add("history")
 
+    def clear(self) -> None:
+        self._add("clear")
+
+    def steps(self, items: list[str], at: int) -> None:
+        self._add("steps", tuple(items), at)
+
+    def last_steps(self) -> tuple:
+        with self.lock:
+            return [e[1:] for e in self.events if e[0] == "steps"][-1]
+
     def shows(self) -> list[tuple]:
         with self.lock:
             return [e[1:] for e in self.events if e[0] == "show"]
@@ -140,7 +175,7 @@ def test_a_superseded_answers_late_partial_and_final_are_never_shown(protocol):
     wait_for(lambda: not answers.worker.busy(), "the worker idle")
     assert [s for s in page.shows() if s[0] == "old"] == []
     assert answers.shown(1).answer.prompt.text == "new"
-    assert page.events[-2:] == [("idle",), ("history",)]  # the bar hidden at the end
+    assert [e[0] for e in page.events[-3:]] == ["idle", "steps", "history"]  # the bar hidden
 
 
 def test_a_page_picks_a_history_entry_again_and_sees_it_again(protocol):
@@ -333,6 +368,7 @@ def test_a_flood_of_prompts_from_four_pages_stays_within_the_memory_bound(protoc
         return Answer(Prompt(text), ROUTE, np.ones(big, bool), "scripted")
 
     session.answer = lambda text, route, control: answer(text)  # type: ignore[method-assign]
+    answers.undo_bytes = 4 << 20  # each page's steps
     tracemalloc.start()
     try:
         for i in range(400):  # 800 MB of answers, were they all kept
@@ -344,4 +380,180 @@ def test_a_flood_of_prompts_from_four_pages_stays_within_the_memory_bound(protoc
     finally:
         tracemalloc.stop()
     assert answers.history.nbytes() <= 16 << 20
-    assert held < (16 << 20) + 4 * big + (4 << 20), held  # the history, each page's answer
+    # the history, each page's steps (the same answers, mostly) and answer on display
+    assert held < (16 << 20) + 4 * (4 << 20) + 4 * big + (4 << 20), held
+
+
+# -- clicks, steps, named answers ---------------------------------------------------------------
+
+
+def _final(page: Recorder, text: str) -> None:
+    wait_for(lambda: (text, False, "route") in page.shows(), f"the answer {text!r}")
+
+
+def test_every_final_answer_is_a_step_and_undo_redo_walk_them(protocol):
+    _, answers, page = protocol
+    answers.ask(1, "a chair", ROUTE)
+    _final(page, "a chair")
+    answers.ask(1, "a lamp", ROUTE)
+    _final(page, "a lamp")
+    items, at = page.last_steps()
+    assert at == 2 and items[0] == "nothing selected" and "a lamp" in items[2]
+    assert answers.undo(1)
+    assert page.shows()[-1] == ("a chair", False, "step") and page.last_steps()[1] == 1
+    assert answers.undo(1)
+    assert page.events[-3][0] == "clear" and answers.shown(1) is None
+    assert not answers.undo(1) and page.has("failed", "nothing to undo")
+    assert answers.redo(1) and page.shows()[-1] == ("a chair", False, "step")
+    # a new answer after an undo drops the steps after it
+    answers.ask(1, "a sofa", ROUTE)
+    _final(page, "a sofa")
+    items, at = page.last_steps()
+    assert at == 2 and len(items) == 3 and "a sofa" in items[2]
+    assert not answers.redo(1) and page.has("failed", "nothing to redo")
+    # a history pick is a step too
+    assert answers.pick(1, ("text", "a lamp", ROUTE))
+    assert page.last_steps()[1] == 3
+
+
+def test_an_undo_drops_the_answer_under_way(protocol):
+    session, answers, page = protocol
+    answers.ask(1, "a chair", ROUTE)
+    _final(page, "a chair")
+    started, release = threading.Event(), threading.Event()
+
+    def slow(control: Control) -> Answer:
+        started.set()
+        release.wait()
+        return answer_of("slow")  # (a job that does not look at its cancellation)
+
+    session.plan["slow"] = slow
+    answers.ask(1, "slow", ROUTE)
+    assert started.wait(30)
+    assert answers.undo(1)  # back to "a chair", while "slow" still runs
+    release.set()
+    wait_for(lambda: not answers.worker.busy(), "the worker idle")
+    assert [s for s in page.shows() if s[0] == "slow"] == []
+    assert answers.shown(1).answer.prompt.text == "a chair" and page.last_steps()[1] == 1
+    # a preview on display: undo goes back to the step shown before it was asked
+    session.plan["refining"] = lambda c: (
+        c.partial(answer_of("refining", final=False)),
+        release.clear(),
+        release.wait(),
+        answer_of("x"),
+    )[-1]
+    answers.ask(1, "refining", ROUTE)
+    wait_for(lambda: ("refining", True, "route") in page.shows(), "the preview")
+    assert answers.undo(1) and answers.shown(1).answer.prompt.text == "a chair"
+    release.set()
+    assert answers.undo(1) and answers.shown(1) is None  # and then to nothing
+
+
+def test_a_click_refines_the_answer_shown_and_is_a_step(protocol):
+    from stages.query.pointing import BoxPrompt, Click
+
+    session, answers, page = protocol
+    answers.ask(1, "a chair", ROUTE)
+    _final(page, "a chair")
+    chair = answers.shown(1).answer
+    cam = {"page1-view1": None}
+    assert answers.point(1, [Click("page1-view1", 500, 3, True)], [], cam, "part") is not None
+    wait_for(lambda: page.last_steps()[1] == 2, "the click's step")
+    (clicks, boxes, base, granularity) = session.pointed[-1]
+    assert base is chair and granularity == "part"
+    shown = answers.shown(1).answer
+    assert shown.kind == "click" and shown.prompt.text == "a chair + click at 500,3"
+    np.testing.assert_array_equal(shown.selected[chair.selected], True)
+    assert shown.selected[500:510].all()
+    # a minus click on the click's answer takes its band out again
+    answers.point(1, [Click("page1-view1", 500, 3, False)], [], cam, "object")
+    wait_for(lambda: page.last_steps()[1] == 3, "the minus click's step")
+    np.testing.assert_array_equal(answers.shown(1).answer.selected, chair.selected)
+    assert answers.shown(1).answer.prompt.text.endswith("- click at 500,3")
+    # a box is a request of its own kind; a SAM that takes boxes only refuses clicks
+    session.boxes_only = True
+    assert answers.point(1, [Click("v", 1, 1)], [], {}, "object") is None
+    assert page.has("failed", "takes boxes only")
+    assert answers.point(1, [], [BoxPrompt("v", (1, 2, 30, 40))], {}, "object") is not None
+    wait_for(lambda: answers.shown(1).answer.kind == "box", "the box's answer")
+
+
+def test_a_click_waits_for_no_preview(protocol):
+    from stages.query.pointing import Click
+
+    session, answers, page = protocol
+    release = threading.Event()
+
+    def refining(control: Control) -> Answer:
+        control.partial(answer_of("p", final=False))
+        release.wait()
+        return answer_of("p")
+
+    session.plan["p"] = refining
+    answers.ask(1, "p", ROUTE)
+    wait_for(lambda: ("p", True, "route") in page.shows(), "the preview")
+    assert answers.point(1, [Click("v", 1, 1)], [], {}, "object") is None
+    assert page.has("failed", "still refining")
+    release.set()
+    _final(page, "p")
+    assert answers.point(1, [Click("v", 1, 1)], [], {}, "object") is not None
+
+
+def test_named_answers_combine_into_a_step(protocol):
+    _, answers, page = protocol
+    a, b = answer_of("a chair").selected, answer_of("a lamp").selected
+    answers.ask(1, "a chair", ROUTE)
+    _final(page, "a chair")
+    assert answers.keep(1, " chair ")  # names are trimmed
+    answers.ask(1, "a lamp", ROUTE)
+    _final(page, "a lamp")
+    assert answers.keep(1, "lamp")
+    assert [n for n, _ in answers.named()] == ["chair", "lamp"]
+    expected = {"union": a | b, "intersection": a & b, "difference": a & ~b, "invert": ~a}
+    for i, (op, sel) in enumerate(expected.items()):
+        assert answers.combine(1, op, "chair", "lamp") is not None
+        wait_for(lambda i=i: page.last_steps()[1] == 3 + i, f"the {op} step")
+        shown = answers.shown(1).answer
+        assert shown.kind == "combine"
+        np.testing.assert_array_equal(shown.selected, sel)
+    assert answers.shown(1).answer.prompt.text == "not (chair)"
+    # the answer shown is an operand too; undo walks back over the combinations
+    assert answers.combine(1, "union", SHOWN, "lamp") is not None
+    wait_for(lambda: page.last_steps()[1] == 7, "the last step")
+    np.testing.assert_array_equal(answers.shown(1).answer.selected, ~a | b)
+    assert answers.undo(1)
+    np.testing.assert_array_equal(answers.shown(1).answer.selected, ~a)
+    # refusals: an unknown name, an unknown operation, a bad name; forgetting a name
+    assert answers.combine(1, "union", "chair", "nope") is None
+    assert answers.combine(1, "xor", "chair", "lamp") is None
+    assert not answers.keep(1, "") and not answers.keep(1, "x" * 61)
+    assert not answers.keep(1, SHOWN) and not answers.keep(1, 3)
+    assert page.has("failed", "not one of the named answers")
+    assert page.has("failed", "the operation is one of")
+    assert answers.forget(1, "chair") and [n for n, _ in answers.named()] == ["lamp"]
+    assert not answers.forget(1, "chair")
+
+
+def test_named_answers_are_bounded_and_never_evicted(protocol):
+    _, answers, page = protocol
+    answers.named_bytes = 3 * answer_of("x").nbytes()
+    for i in range(3):
+        answers.ask(1, f"p{i}", ROUTE)
+        _final(page, f"p{i}")
+        assert answers.keep(1, f"n{i}")
+    answers.ask(1, "p3", ROUTE)
+    _final(page, "p3")
+    assert not answers.keep(1, "n3") and page.has("failed", "forget one first")
+    assert answers.keep(1, "n2")  # a name replaced: within the bound
+    assert [n for n, _ in answers.named()] == ["n0", "n1", "n2"]
+
+
+def test_a_pages_steps_are_bounded_in_bytes(protocol):
+    _, answers, page = protocol
+    answers.undo_bytes = 3 * answer_of("x").nbytes()
+    for i in range(6):
+        answers.ask(1, f"p{i}", ROUTE)
+        _final(page, f"p{i}")
+    items, at = page.last_steps()
+    assert len(items) == 3 and at == 2 and "p5" in items[2] and "p3" in items[0]
+    assert answers.undo(1) and answers.undo(1) and not answers.undo(1)

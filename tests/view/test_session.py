@@ -233,25 +233,6 @@ def test_bad_view_inputs_exit_2_before_serving(fitted, tmp_path, capsys):
         assert len(err.strip().splitlines()) == 1, err  # no line of work before the refusal
 
 
-def test_a_prompts_file_is_checked(tmp_path):
-    from stages.view.session import load_prompt_table
-
-    bad = [
-        ({"id": "p1", "text": "x"}, "JSON list"),
-        ([{"id": "../x", "text": "a"}], "not a plain name"),
-        ([{"id": "p1", "text": ""}], "empty"),
-        ([{"id": 3, "text": "a"}], "string 'id'"),
-    ]
-    for raw, message in bad:
-        (tmp_path / "p.json").write_text(json.dumps(raw))
-        with pytest.raises(GoiError, match=message):
-            load_prompt_table(tmp_path / "p.json")
-    (tmp_path / "p.json").write_text(
-        json.dumps([{"id": "p1", "text": " a "}, {"id": "p2", "text": "a"}])
-    )
-    assert load_prompt_table(tmp_path / "p.json") == {"a": "p1"}
-
-
 def test_control_report_stops_when_cancelled():
     from stages.view.session import ControlReport
 

@@ -103,6 +103,68 @@ def test_tint_draws_selected_gaussians_the_browser_was_not_sent(gaussians):
     assert p.overlay_tinted
 
 
+def test_heat_colours_every_splat_by_its_score(gaussians):
+    from stages.view.splats import HEAT_STOPS, heat_colors, to_uint8
+
+    s = scene_splats(gaussians, 10**9)
+    chunks = s.chunks(500)
+    score = np.zeros(s.n_scene, np.float32)
+    score[s.index[chunks[1]][:10]] = 1.0  # certain
+    score[s.index[chunks[1]][10:20]] = 0.5  # at the cut
+    red = np.ones(3, np.float32)
+    p = plan(s, chunks, [b"base"] * len(chunks), score > 0, "heat", red, score)
+    assert sorted(p.chunk_words) == list(range(len(chunks))) and p.scene_visible
+    rgba = p.chunk_words[1].view(np.uint8).reshape(-1, 4)
+    np.testing.assert_array_equal(rgba[:10, :3], np.repeat(to_uint8(HEAT_STOPS[-1:]), 10, 0))
+    mid = np.repeat(to_uint8(HEAT_STOPS[2:3]), 10, 0).astype(int)  # (the score sent as a byte)
+    np.testing.assert_allclose(rgba[10:20, :3].astype(int), mid, atol=3)
+    grey = rgba[20:, :3].astype(int)
+    assert (grey.max(1) - grey.min(1) <= 1).all()  # a score of 0: grey, the splat's own
+    # the same scores again send nothing; another score resends its chunk only
+    assert plan(s, chunks, p.chunk_keys, score > 0, "heat", red, score).chunk_words == {}
+    score[s.index[chunks[3]][0]] = 0.9
+    again = plan(s, chunks, p.chunk_keys, score > 0, "heat", red, score)
+    assert list(again.chunk_words) == [3]
+    # without a score the selection itself is the heat
+    binary = plan(s, chunks, [b"base"] * len(chunks), score > 0, "heat", red, None)
+    np.testing.assert_array_equal(binary.chunk_words[1][:10], p.chunk_words[1][:10])
+    assert heat_colors(np.ones((2, 3)), np.array([0.0, 1.0])).shape == (2, 3)
+
+
+def test_selections_combine_with_their_scores():
+    from stages.view.selections import combine, refined_score, stretched
+
+    a = np.array([1, 1, 0, 0], bool)
+    b = np.array([1, 0, 1, 0], bool)
+    sa = np.array([0.9, 0.6, 0.3, 0.0], np.float32)
+    sb = np.array([0.8, 0.4, 0.7, 0.1], np.float32)
+    cases = {
+        "union": (a | b, np.maximum(sa, sb)),
+        "intersection": (a & b, np.minimum(sa, sb)),
+        "difference": (a & ~b, np.minimum(sa, 1 - sb)),
+    }
+    for op, (sel, score) in cases.items():
+        got, s = combine(op, a, b, sa, sb)
+        np.testing.assert_array_equal(got, sel)
+        np.testing.assert_allclose(s, score, atol=1e-7)
+    got, s = combine("invert", a, None, sa)
+    np.testing.assert_array_equal(got, ~a)
+    np.testing.assert_allclose(s, 1 - sa, atol=1e-7)
+    got, s = combine("union", a, b)  # no scores: the selections as 0 / 1
+    np.testing.assert_array_equal(s, (a | b).astype(np.float32))
+    # a click's last round refines the base's score: plus the union, minus the difference
+    share, evident = np.array([0.2, 0.9, 0.7, 0.5], np.float32), np.array([1, 1, 1, 0], bool)
+    np.testing.assert_allclose(
+        refined_score(a, sa, share, evident, True), [0.9, 0.9, 0.7, 0.0], atol=1e-7
+    )
+    np.testing.assert_allclose(
+        refined_score(a, sa, share, evident, False), [0.8, 0.1, 0.3, 0.0], atol=1e-7
+    )
+    # stretched about the cut: the cut in the middle, the farthest score at an end, 0 kept
+    st = stretched(np.array([0.0, 0.27, 0.5, 0.6, 0.73], np.float32))
+    np.testing.assert_allclose(st, [0.0, 0.0, 0.5, 0.5 + 0.1 / 0.46, 1.0], atol=1e-6)
+
+
 def test_browser_camera_round_trip():
     R = quat_to_rotmat(np.array([0.9, 0.1, -0.3, 0.2]))
     cam = Camera("c", 640, 400, 500.0, 500.0, 320, 200, R, np.array([0.1, -0.2, 2.0]))
