@@ -24,8 +24,10 @@ where it repeats its own mistake in every view (the TV's screen without its fram
 the support set 0.894 -> 0.880, at half weight 0.915; the TV cabinet with the TV on it 0.942
 -> 0.915, at half 0.940), and the thin palm gained less at half weight (0.291 -> 0.638 at
 full, 0.550 at half) while no prompt lost more than 0.004. Rounds repeat while the answer
-changes by more than `refine_settle` of its size, at most `refine_rounds`. A view that shows
-nothing of the answer is not asked (its RES mask already says what it says).
+changes by more than `refine_settle` of its size, at most `refine_rounds`; in a later round a
+view whose sight of the answer moved by at most RESHOWN keeps its SAM mask (SAM's answer to a
+prompt moved by a few pixels), so a round costs the views it moves. A view that shows nothing
+of the answer is not asked (its RES mask already says what it says).
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from stages.query.lift_math import ViewEvidence
 from stages.query.point_math import box_pixels, expand_box, interior_points, main_parts, mask_box
 from stages.query.pointing import BOX_KEEP, INTERIOR_POINTS, TIGHT, SamImages
 from stages.query.res_index import GrowingIndex, ResIndex
-from stages.render.lift import selection_mask
+from stages.render.lift import selection_masks
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
@@ -61,6 +63,9 @@ REJECTED_SHARE = 0.1
 REJECTED_PIXELS = 0.05
 #: The suffix of a SAM mask's view name in the evidence (and the selection's record).
 SAM_VIEW = "+sam"
+#: After the first round, a view is asked again only when its sight of the answer changed by
+#: more than this share of it (pixels gained or lost); otherwise it keeps its SAM mask.
+RESHOWN = 0.02
 #: A view's SAM mask weighs this much against its RES mask's 1 (see the module doc).
 SAM_WEIGHT = 0.5
 
@@ -81,27 +86,42 @@ class RepromptParams:
     the answer."""
 
 
-def sam_prompts(
+def answer_masks(
     rast: Rasterizer, cam: Camera, selected: np.ndarray, rejected: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(points [P, 2], labels [P], box [4]) for SAM at `cam` from a 3D answer (see the module
-    doc); None when the view shows nothing of it."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """[H, W] bool each: the answer and what the vote rejected, seen from `cam` (one walk)."""
     proj, bins = rast.prepare(cam)
-    shown = selection_mask(proj, bins, selected, cam.width, cam.height)
+    both = selection_masks(proj, bins, np.stack([selected, rejected], 1), cam.width, cam.height)
+    return both[:, :, 0], both[:, :, 1]
+
+
+def prompts_from(
+    shown: np.ndarray, rejected_shown: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(points [P, 2], labels [P], box [4]) for SAM from the answer and the rejected part seen
+    in a view (see the module doc); None when the view shows nothing of the answer."""
+    height, width = shown.shape
     main = main_parts(shown, BOX_KEEP)
     tight = mask_box(main)
     if tight is None:
         return None
-    box = expand_box(tight, TIGHT, cam.width, cam.height, 0.0)
+    box = expand_box(tight, TIGHT, width, height, 0.0)
     pos = interior_points(main, INTERIOR_POINTS)
-    inside = box_pixels(box, cam.width, cam.height)
-    out = selection_mask(proj, bins, rejected, cam.width, cam.height) & inside & ~shown
+    inside = box_pixels(box, width, height)
+    out = rejected_shown & inside & ~shown
     neg = np.zeros((0, 2), np.int64)
     if out.sum() >= REJECTED_PIXELS * inside.sum():
         neg = interior_points(out, 1)
     points = np.concatenate([pos, neg]).astype(np.float64)
     labels = np.r_[np.ones(len(pos)), np.zeros(len(neg))]
     return points, labels, box
+
+
+def sam_prompts(
+    rast: Rasterizer, cam: Camera, selected: np.ndarray, rejected: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """prompts_from the 3D answer seen from `cam`."""
+    return prompts_from(*answer_masks(rast, cam, selected, rejected))
 
 
 def rejected_of(answer: LiftedAnswer) -> np.ndarray:
@@ -129,33 +149,46 @@ def reprompt(
     res_evidence = [e for e in answer.evidence if not e.view.endswith(SAM_VIEW)]
     views = [cams[e.view] for e in res_evidence if e.view in cams]
     rounds: list[dict] = []
+    # after the first round a view whose sight of the answer moved by at most RESHOWN of it
+    # keeps its SAM mask: its prompt would move by a few pixels, and SAM's mask with it
+    # (measured: the sofa's second round changed 10 Gaussians of 9,594)
+    asked: dict[str, tuple[np.ndarray, ViewEvidence]] = {}
     t0 = time.perf_counter()
     for _ in range(p.refine_rounds):
         selected, rejected = answer.selected, rejected_of(answer)
         evidence: list[ViewEvidence] = []
-        negatives = 0
+        negatives = runs = 0
         for cam in report.progress(views, "refine", show=lambda c: c.name if c else None):
             check()
-            prompt = sam_prompts(rast, cam, selected, rejected)
+            shown, rejected_shown = answer_masks(rast, cam, selected, rejected)
+            if cam.name in asked:
+                before, kept = asked[cam.name]
+                if (shown ^ before).sum() <= RESHOWN * max(1, int(shown.sum())):
+                    evidence.append(kept)
+                    continue
+            prompt = prompts_from(shown, rejected_shown)
             if prompt is None:
                 continue
             points, labels, box = prompt
             if not sam.takes_points:  # boxes only: the box alone
                 points, labels = points[:0], labels[:0]
             negatives += int((labels == 0).sum())
+            runs += 1
             logits = sam.prompt_logits(images.embedding(cam), (cam.height, cam.width),
                                        points if len(points) else None,
                                        labels if len(points) else None, box)  # fmt: skip
             ev = view_evidence(rast, cam, logits > 0)
             evidence.append(ViewEvidence(cam.name + SAM_VIEW, ev.ids, SAM_WEIGHT * ev.s1,
                                          SAM_WEIGHT * ev.s0, ev.empty))  # fmt: skip
-        if not evidence:
-            break
+            asked[cam.name] = (shown, evidence[-1])
+        if not evidence or (rounds and runs == 0):
+            break  # nothing to ask, or every view kept its mask: the vote would not change
         new = revote([*res_evidence, *evidence])
         added = int((new.selected & ~selected).sum())
         removed = int((selected & ~new.selected).sum())
-        rounds.append({"views": len(evidence), "added": added, "removed": removed,
-                       "not_here": negatives, "gaussians": int(new.selected.sum())})  # fmt: skip
+        rounds.append({"views": len(evidence), "asked": runs, "added": added,
+                       "removed": removed, "not_here": negatives,
+                       "gaussians": int(new.selected.sum())})  # fmt: skip
         answer = new
         if added + removed < p.refine_settle * max(1, int(selected.sum())):
             break

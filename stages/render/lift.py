@@ -53,6 +53,15 @@ def selection_mask(proj: Projected, bins: Bins, selected: np.ndarray, width: int
     return r.image[:, :, 0] > 0.5 * r.alpha
 
 
+def selection_masks(
+    proj: Projected, bins: Bins, selections: np.ndarray, width: int, height: int
+) -> np.ndarray:
+    """[H, W, K] bool: selection_mask of each of K selections ([G, K] bool) in one tile walk
+    (each channel is composited alone, so each equals its own selection_mask bit for bit)."""
+    r = render(proj, bins, np.asarray(selections, np.float32), width, height)
+    return r.image > 0.5 * r.alpha[:, :, None]
+
+
 def score_map(proj: Projected, bins: Bins, scores: np.ndarray, width: int, height: int):
     """[H, W] float32: a per-Gaussian score [G] composited like a colour, sum_i w_i s_i over the
     pixel's blend weights w_i (0 where nothing is drawn, so the background scores 0). With the

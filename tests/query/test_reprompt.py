@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -96,3 +97,54 @@ def test_refine_sam_on_the_dev_room_records_its_rounds(sam_bundle, tmp_path):
     target = gid == 22
     assert (sel.selected & target).sum() / (sel.selected | target).sum() >= 0.8
     json.dumps(rec)  # JSON-able as recorded
+
+
+class _CountingSam:
+    """A SAM that outlines its prompt's box, counting its runs."""
+
+    takes_points = True
+
+    def __init__(self) -> None:
+        self.runs = 0
+
+    def prompt_logits(self, emb, size, points, labels, box):  # noqa: ANN001, ANN201
+        self.runs += 1
+        m = -np.ones(size, np.float32)
+        x0, y0, x1, y1 = (int(round(v)) for v in box)
+        m[y0 : y1 + 1, x0 : x1 + 1] = 1.0
+        return m
+
+
+def _answer(selected: np.ndarray, evidence: list) -> SimpleNamespace:
+    g = len(selected)
+    lifted = SimpleNamespace(selected=selected, S1=selected * 1.0, S0=(~selected) * 1.0,
+                             evident=np.ones(g, bool))  # fmt: skip
+    return SimpleNamespace(selected=selected, lifted=lifted, evidence=evidence)
+
+
+def test_a_later_round_asks_only_the_views_whose_sight_of_the_answer_moved(tmp_path):
+    """Round 1 asks every view; a round whose answer looks the same from a view keeps that
+    view's SAM mask (no run), and a round where no view moved ends the rounds."""
+    from stages.query.lift_math import ViewEvidence
+    from stages.query.reprompt import RepromptParams, reprompt
+
+    g, rast = _scene(tmp_path)
+    cams = {n: front_camera(80, 60, n) for n in ("a", "b", "c")}
+    res = [ViewEvidence(n, np.arange(3), np.ones(3), np.zeros(3), False) for n in cams]
+    left = g.means[:, 0] < -0.2
+    images = SimpleNamespace(embedding=lambda cam: None)
+    p = RepromptParams(refine="sam", refine_rounds=3, refine_settle=0.0)
+
+    sam = _CountingSam()  # the vote keeps the answer: round 2 finds every view as it was
+    _, rec = reprompt(_answer(left, res), rast, sam, images, cams,  # type: ignore[arg-type]
+                      lambda ev: _answer(left, ev), p)  # fmt: skip
+    assert sam.runs == 3 and [r["asked"] for r in rec["rounds"]] == [3]
+    assert rec["rounds"][0]["added"] == 0 and rec["rounds"][0]["views"] == 3
+
+    sam = _CountingSam()  # the vote grows the answer once: each view is asked again, once
+    grown = g.means[:, 0] < 0.3
+    answers = iter([_answer(grown, []), _answer(grown, []), _answer(grown, [])])
+    _, rec = reprompt(_answer(left, res), rast, sam, images, cams,  # type: ignore[arg-type]
+                      lambda ev: next(answers), p)  # fmt: skip
+    assert [r["asked"] for r in rec["rounds"]] == [3, 3] and sam.runs == 6
+    assert rec["rounds"][0]["added"] == int((grown & ~left).sum()) > 0

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from stages.render.composite import blend_weights
-from stages.render.lift import lift_mask, score_map, selection_mask
+from stages.render.lift import lift_mask, score_map, selection_mask, selection_masks
 from stages.render.rasterizer import Rasterizer
 from stages.render.reference import reference_lift, reference_project
 from stages.scene.gaussians import load_ply
@@ -102,6 +102,18 @@ def test_selection_mask_is_the_selected_share(tmp_path):
         selection_mask(proj, bins, np.ones(g.count, bool), cam.width, cam.height).sum()
         == (W.sum(axis=1) > 0).sum()
     )
+
+
+def test_selection_masks_are_each_selections_mask_in_one_walk(tmp_path):
+    g, r = _scene(tmp_path, n=400, seed=5)
+    cam = front_camera(64, 48)
+    proj, bins = r.prepare(cam)
+    sels = np.random.default_rng(2).random((g.count, 3)) < [0.2, 0.5, 0.8]
+    got = selection_masks(proj, bins, sels, cam.width, cam.height)
+    assert got.shape == (48, 64, 3)
+    for k in range(3):
+        want = selection_mask(proj, bins, sels[:, k], cam.width, cam.height)
+        assert np.array_equal(got[:, :, k], want) and want.any()
 
 
 def test_score_map_is_the_blend_weighted_sum_of_the_scores(tmp_path):
