@@ -230,7 +230,7 @@ def click_figure(s: Shots) -> np.ndarray:
     """The canvas before and after the click (the TV and the stand), one above the other,
     beside the panel down to its steps."""
     h = s.steps_y
-    pad = 24
+    pad = 48
     x0, y0 = max(0, s.frame[0] - pad), max(0, s.frame[1] - pad)
     x1, y1 = min(s.panel_x, s.frame[2] + pad), min(s.after.shape[0], s.frame[3] + pad)
     crops = []

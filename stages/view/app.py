@@ -386,7 +386,8 @@ class Page:
         self.pointer_box.on_update(lambda _: self.guarded(self._pointer_changed))
         self.grow_box = gui.add_dropdown(
             "Grow to", list(GRANULARITIES), initial_value=self.granularity,
-            hint="object: from the part clicked to the whole object; part: what was clicked",
+            hint="plus clicks and boxes: object grows from the part clicked to the whole "
+            "object, part keeps what was clicked (a minus click takes out the part it hit)",
         )  # fmt: skip
         self.grow_box.on_update(lambda _: self.guarded(self._grow_changed))
         self.pointer_keys = POINTER_KEYS if sam.takes_points else (
