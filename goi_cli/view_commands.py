@@ -91,14 +91,16 @@ def view_cmd(field: Path | None, for_seconds: float | None, **kw) -> None:
     from stages.view.app import ViewerApp
 
     app = ViewerApp(session, TERMINAL)
-    url = app.start()
-    mib = app.sent_bytes / 2**20
-    click.echo(
-        f"goi view: {url}  ({app.splats.count:,} of {scene.gaussians.count:,} Gaussians sent to "
-        f"each page, {mib:.1f} MiB; Ctrl-C stops)",
-        err=True,
-    )
+    # a Ctrl-C the moment the address is printed (or while the server starts) must still stop
+    # the server's threads, or they keep the process alive
     try:
+        url = app.start()
+        mib = app.sent_bytes / 2**20
+        click.echo(
+            f"goi view: {url}  ({app.splats.count:,} of {scene.gaussians.count:,} Gaussians sent "
+            f"to each page, {mib:.1f} MiB; Ctrl-C stops)",
+            err=True,
+        )
         serve_until(time.monotonic() + for_seconds if for_seconds is not None else math.inf)
     finally:
         app.stop()

@@ -413,14 +413,24 @@ def test_ctrl_c_stops_goi_view(tmp_path):
     pytest.importorskip("viser")
     cmd = [sys.executable, "-m", "goi_cli", "view", "--scene", str(DEMO), "--res-masks",
            str(DEMO / "res"), "--out", str(tmp_path / "out"), "--port", "0"]  # fmt: skip
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"}
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)
     assert proc.stderr is not None
     for line in proc.stderr:  # the server is up once it prints its address
         if re.search(r"goi view: http://", line):
             break
     proc.send_signal(signal.SIGINT)
-    assert proc.wait(timeout=120) == 130
+    try:
+        code = proc.wait(timeout=120)
+    except subprocess.TimeoutExpired:  # say where it hung: every thread's stack (faulthandler)
+        proc.send_signal(signal.SIGABRT)
+        try:
+            proc.wait(timeout=30)
+        finally:
+            proc.kill()
+        pytest.fail(f"goi view did not stop within 120 s of a Ctrl-C; its log after: "
+                    f"{proc.stderr.read()[-6000:]}")  # fmt: skip
+    assert code == 130
 
 
 def test_a_flood_of_refusals_does_not_flood_the_log():
