@@ -214,6 +214,15 @@ class Answer:
         return sum(a.nbytes for a in arrays.values())
 
 
+def _next_free(d: Path, stem: str, suffix: str) -> str:
+    """The first of STEM-001, STEM-002, ... that no file STEM-NNN{suffix} in `d` takes."""
+    taken = {p.stem for p in d.glob(f"*{suffix}")}
+    i = 1
+    while f"{stem}-{i:03d}" in taken:
+        i += 1
+    return f"{stem}-{i:03d}"
+
+
 def _arrays(ans: Answer) -> Iterator[np.ndarray]:
     yield ans.selected
     if ans.score is not None:
@@ -885,11 +894,7 @@ class ViewSession:
 
         def write() -> Path:
             make_dir(d, "--out")
-            taken = {p.stem for p in d.glob("*.ply")}
-            i = 1
-            while f"labels-{i:03d}" in taken:
-                i += 1
-            path = d / f"labels-{i:03d}.ply"
+            path = d / f"{_next_free(d, 'labels', '.ply')}.ply"
             write_labels_ply(g, layers, path, {"ply": self.scene.ply_digest()}, False, "labels")
             return path
 
@@ -906,11 +911,7 @@ class ViewSession:
 
         def write() -> Path:
             make_dir(d, "--out")
-            taken = {p.stem for p in d.glob("*.json")}
-            i = 1
-            while f"camera-{i:03d}" in taken:
-                i += 1
-            name = f"camera-{i:03d}"
+            name = _next_free(d, "camera", ".json")
             path = d / f"{name}.json"
             with atomic_path(path) as tmp:
                 write_inria(tmp, [dataclasses.replace(c, name=name)])
