@@ -418,7 +418,14 @@ def test_ctrl_c_stops_goi_view(tmp_path):
     cmd = [sys.executable, "-m", "goi_cli", "view", "--scene", str(DEMO), "--res-masks",
            str(DEMO / "res"), "--out", str(tmp_path / "out"), "--port", "0"]  # fmt: skip
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"}
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)
+
+    # a user's shell delivers Ctrl-C; a test run started in the background (nohup, `&`)
+    # ignores SIGINT, and a child that starts ignoring it keeps ignoring it (as goi must)
+    def as_a_shell_starts_it() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=as_a_shell_starts_it)  # fmt: skip
     assert proc.stderr is not None
     for line in proc.stderr:  # the server is up once it prints its address
         if re.search(r"goi view: http://", line):
