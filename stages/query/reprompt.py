@@ -51,7 +51,7 @@ from stages.query.point_math import box_pixels, expand_box, interior_points, mai
 from stages.query.pointing import BOX_KEEP, INTERIOR_POINTS, TIGHT, SamImages
 from stages.query.res_index import GrowingIndex, ResIndex
 from stages.render.lift import selection_masks
-from stages.render.rasterizer import Rasterizer
+from stages.render.rasterizer import KEEP_VIEWS_BYTES, Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 
@@ -226,6 +226,10 @@ def sam_reviser(
     elif images is None:
         images = PhotoEmbeddings(scene, sam, report)
     cams = {c.name: c for c in scene.views("train")}
+    if not rast.keeping:
+        # a one-shot command: the lift and each round walk every view again (the answer seen
+        # from it, SAM's mask lifted), each walk on the view's same projection
+        rast.keep_views(KEEP_VIEWS_BYTES, cams.values())
 
     def revise(answer: LiftedAnswer, revote: Callable[[list[ViewEvidence]], LiftedAnswer]):  # noqa: ANN202
         return reprompt(answer, rast, sam, images, cams, revote, p, check, report)

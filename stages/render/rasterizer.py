@@ -86,6 +86,11 @@ class Rasterizer:
         self._keepable = {_camera_key(c) for c in cameras}
         self._evict()
 
+    @property
+    def keeping(self) -> bool:
+        """Whether some cameras' projections are kept (keep_views)."""
+        return self._keep_bytes > 0
+
     def kept_bytes(self) -> int:
         return sum(n for n, _ in self._kept.values())
 

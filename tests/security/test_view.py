@@ -361,7 +361,12 @@ def test_malformed_values_from_a_page_are_refused_there_and_the_page_goes_on(ser
         def send(handle, value):  # noqa: ANN001, ANN202
             c.send(_messages.GuiUpdateMessage(handle._impl.uuid, {"value": value}))
 
-        def refused(text):  # noqa: ANN001, ANN202
+        def refused(text, times=1):  # noqa: ANN001, ANN202
+            # each value's callback runs on a thread of its own: wait for this refusal's own
+            # log line (the n-th of its text) before the next value, so that a late refusal
+            # cannot replace the next one's line in the page
+            lines = lambda: sum(text in line for line in log.lines)  # noqa: E731
+            wait_for(lambda: lines() >= times, f"the log says {text!r} ({times})")
             wait_for(lambda: text in page.status.content, f"the page says {text!r}")
             assert "#b00020" in page.status.content  # shown as an error
 
@@ -370,6 +375,7 @@ def test_malformed_values_from_a_page_are_refused_there_and_the_page_goes_on(ser
         send(page.color_box, [1, 2])
         refused("tint: three integers")
         send(page.color_box, [1, 2, 300])
+        refused("tint: three integers", times=2)
         wait_for(lambda: page.color_box.value == (255, 0, 140), "the tint put back")
         send(page.route_box, "the fastest")
         refused("route: not one of the routes")
