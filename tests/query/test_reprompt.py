@@ -148,3 +148,24 @@ def test_a_later_round_asks_only_the_views_whose_sight_of_the_answer_moved(tmp_p
                       lambda ev: next(answers), p)  # fmt: skip
     assert [r["asked"] for r in rec["rounds"]] == [3, 3] and sam.runs == 6
     assert rec["rounds"][0]["added"] == int((grown & ~left).sum()) > 0
+
+
+def test_a_view_that_shows_a_few_pixels_of_the_answer_is_not_asked(tmp_path):
+    """SAM given a box of a few pixels outlines what it likes: a view showing fewer than
+    LEAST_SIGHT pixels of the answer keeps its RES mask alone."""
+    from stages.query.lift_math import ViewEvidence
+    from stages.query.reprompt import LEAST_SIGHT, RepromptParams, answer_masks, reprompt
+
+    g, rast = _scene(tmp_path)
+    near, far = front_camera(80, 60, "near"), front_camera(12, 9, "far")
+    cams = {"near": near, "far": far}
+    left = g.means[:, 0] < -0.2
+    rejected = np.zeros(g.count, bool)
+    shown = {n: int(answer_masks(rast, c, left, rejected)[0].sum()) for n, c in cams.items()}
+    assert 0 < shown["far"] < LEAST_SIGHT <= shown["near"]  # the same answer, seen small
+    res = [ViewEvidence(n, np.arange(3), np.ones(3), np.zeros(3), False) for n in cams]
+    sam = _CountingSam()
+    images = SimpleNamespace(embedding=lambda cam: None)
+    _, rec = reprompt(_answer(left, res), rast, sam, images, cams,  # type: ignore[arg-type]
+                      lambda ev: _answer(left, ev), RepromptParams(refine="sam"))  # fmt: skip
+    assert sam.runs == 1 and rec["rounds"][0]["asked"] == 1
