@@ -254,7 +254,8 @@ def test_a_new_user_sees_the_answer_framed_a_preview_apart_the_mode_prompt_and_p
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             errors = []
-            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.on("console", lambda m: errors.append(f"{m.text} @ {m.location.get('url', '')}")
+                    if m.type == "error" else None)  # fmt: skip
             page.goto(url)
             box = _prompt_box(page)
             box.wait_for(timeout=120_000)
@@ -299,6 +300,10 @@ def test_a_new_user_sees_the_answer_framed_a_preview_apart_the_mode_prompt_and_p
     # viser 1.1.1's own splat mesh has a 2-component position attribute, whose bounding sphere
     # three.js computes as NaN (an upstream bug); any other error is goi's
     ours = [e for e in errors if "computeBoundingSphere(): Computed radius is NaN" not in e]
+    # viser's image element revokes its blob: URL when the image changes, and when it changes
+    # again before the last one loaded (two photos in quick succession, a loaded machine),
+    # chromium reports the revoked URL as not found: the newer image is what shows
+    ours = [e for e in ours if not ("ERR_FILE_NOT_FOUND" in e and " @ blob:" in e)]
     assert ours == [], ours
 
 
