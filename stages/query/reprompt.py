@@ -167,12 +167,13 @@ def reprompt(
         for cam in report.progress(views, "refine", show=lambda c: c.name if c else None):
             check()
             shown, rejected_shown = answer_masks(rast, cam, selected, rejected)
+            sight = int(shown.sum())
             if cam.name in asked:
                 before, kept = asked[cam.name]
-                if (shown ^ before).sum() <= RESHOWN * max(1, int(shown.sum())):
+                if (shown ^ before).sum() <= RESHOWN * max(1, sight):
                     evidence.append(kept)
                     continue
-            if shown.sum() < LEAST_SIGHT:
+            if sight < LEAST_SIGHT:
                 continue  # too little of the answer there to prompt SAM with
             prompt = prompts_from(shown, rejected_shown)
             if prompt is None:
