@@ -35,6 +35,19 @@ A view whose point mask is more than OUTLINE_RATIO times the click's own outline
 is left out: from another side the click's point can lie on a small thing's rim, and SAM
 outlines what it stands on (the cup's point outlined the table in 11 of 16 views).
 
+A plus click beside the answer it refines (a text answer, or what the clicks before it
+selected) corrects the answer rather than naming a new object. Beside: inside the box of the
+answer's piece nearest the click, grown by CONTEXT_GROW, in the view it was made in (a piece:
+the answer's Gaussians linked closer than `clean.LINK` of the scene's extent, with the pieces
+within `clean.NEAR` of it; of "armchairs", the chair clicked beside; of a plant, its fronds).
+SAM is then asked, in the views that see the click, with the box of that piece's projection
+stretched to the click, points deep inside it and the click: it outlines that piece and the
+part the click adds together, and what the vote of those masks adds is added. Answered on its
+own, a click on a TV's feet outlined the cabinet they stand on (the television 0.834 ->
+0.323); in the answer's context 0.854, with one round of decoder runs instead of two. A click
+farther away names another object and is answered on its own (in context, "the sofa" plus a
+click on the rug gave 0.385 in 3D IoU, on its own 0.839).
+
 Minus clicks: each is answered like a plus click, at `minus_granularity` (part by default),
 and what the answer holds of it is taken out (the top of a TV stand that "sofa" took in). Grown
 to the object, a minus click on the table under a plant took the plant with it (the plant on
@@ -61,6 +74,8 @@ from stages.core.params import AT_LEAST_1, Choice, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle
 from stages.models.grounded import Sam
+from stages.query.clean import LINK, components, near_any, robust_extent
+from stages.query.clean import NEAR as NEAR_PIECE
 from stages.query.lift_answer import view_evidence
 from stages.query.lift_math import LiftParams, ViewEvidence, fuse
 from stages.query.point_math import (
@@ -106,6 +121,9 @@ FEW_VIEWS = 8
 TIGHT = 0.05
 #: A box seed's views: the projection of the seed covers at least this many pixels there.
 SEED_PIXELS = 24
+#: A plus click inside the answer's box grown by this share of its size a side (in the view
+#: clicked in) is read in the answer's context (see the module doc).
+CONTEXT_GROW = 0.3
 
 
 @dataclass
@@ -339,6 +357,7 @@ class Pointer:
         self.vote_lp = LiftParams(lift=True)
         self.lenient_lp = dataclasses.replace(self.vote_lp, background_bias=LENIENT_BIAS)
         self.decoder_runs = 0
+        self._extent: float | None = None  # the scene's, for the answer's pieces
 
     def camera(self, view: str, option: str) -> Camera:
         cam = self.cams.get(view)
@@ -395,7 +414,6 @@ class Pointer:
             check()
             # each answer is told where the other sign's clicks are: SAM leaves them out
             other = minus if plus else plus_points
-            seed = self._seed(what, cam, other)
             so_far = selected.copy()
 
             def shown(
@@ -405,7 +423,11 @@ class Pointer:
                     partial(so_far | got if plus else so_far & ~got, label)
 
             how = p.granularity if plus else p.minus_granularity
-            got, rec = self._grow(seed, other, check, how, shown)
+            if plus and isinstance(what, Click) and self._beside(what, cam, selected):
+                got, rec = self._in_context(what, cam, selected, other, check)
+                shown(got, f"click {what.text()}: with the answer")
+            else:
+                got, rec = self._grow(self._seed(what, cam, other), other, check, how, shown)
             if plus:
                 selected |= got
                 record["answers"].append({**rec, "sign": "+", "gaussians": int(got.sum())})
@@ -425,13 +447,10 @@ class Pointer:
             return self._click_seed(what, cam)
         return self._box_seed(what, cam, minus)
 
-    def _click_seed(self, click: Click, cam: Camera) -> Seed:
+    def _click_views(self, click: Click, cam: Camera) -> tuple[list[Camera], dict[str, np.ndarray]]:
         """The training views that see the click's point (on their image, not hidden: their
         surface at its pixel is at its depth), chosen from different sides, from the view
-        clicked in, and the point's pixel in each; and what SAM outlines at the click in the
-        view clicked in (a training view; else the first view chosen: a novel camera has no
-        photo, and its render would cost an image encoding), lifted: what a view's outline is
-        compared with (`_points_round`)."""
+        clicked in, and the point's pixel [1, 2] in each."""
         tol = self.p.depth_tolerance
         X = click_point(self.rast, cam, click)
         seen = [c for c in self.train if visible(self.rast, c, X[None], tol)[0]]
@@ -440,11 +459,20 @@ class Pointer:
                 f"--click {click.text()}: no training view sees that point (it is hidden or "
                 "outside every one of them); SAM runs on the training views' photos"
             )
-        clicked = self.scene.by_name.get(cam.name)
-        views = self._choose(seen, [cam] if clicked is cam else [])
+        clicked = self.scene.by_name.get(cam.name) is cam
+        views = self._choose(seen, [cam] if clicked else [])
         pos = {c.name: project_points(c, X[None])[0] for c in views}
-        if clicked is cam and cam.name in pos:
+        if clicked and cam.name in pos:
             pos[cam.name] = np.array([[click.u, click.v]])  # its own view: the pixel clicked
+        return views, pos
+
+    def _click_seed(self, click: Click, cam: Camera) -> Seed:
+        """The click's views (`_click_views`) and what SAM outlines at the click in the view
+        clicked in (a training view; else the first view chosen: a novel camera has no photo,
+        and its render would cost an image encoding), lifted: what a view's outline is
+        compared with (`_points_round`)."""
+        views, pos = self._click_views(click, cam)
+        clicked = self.scene.by_name.get(cam.name)
         own = cam if clicked is cam else views[0]
         logits = self.sam.prompt_logits(self.images.embedding(own), (own.height, own.width),
                                         pos[own.name], np.ones(1))  # fmt: skip
@@ -537,6 +565,79 @@ class Pointer:
             return self.images.embedding(cam)
         rgb = self.rast.render_rgb(cam).image
         return self.sam.embed((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
+
+    # -- a click in the answer's context ---------------------------------------------------
+
+    def _piece_by(self, click: Click, cam: Camera, selected: np.ndarray) -> np.ndarray:
+        """[G] bool: the answer's 3D piece (Gaussians linked closer than clean.LINK of the
+        scene's extent) nearest the click's point: of "armchairs", the chair clicked beside."""
+        X = click_point(self.rast, cam, click)
+        means = self.rast.means
+        if self._extent is None:
+            self._extent = robust_extent(means)
+        idx = np.flatnonzero(selected)
+        piece = components(means[idx].astype(np.float64), LINK * self._extent)
+        pts = means[idx].astype(np.float64)
+        nearest = piece == piece[int(np.argmin(((pts - X) ** 2).sum(1)))]
+        # with the pieces near it: a plant's fronds, a few cm apart, are one thing to correct
+        close = near_any(pts, pts[nearest], NEAR_PIECE * self._extent)
+        out = np.zeros_like(selected, dtype=bool)
+        out[idx[np.isin(piece, np.unique(piece[close]))]] = True
+        return out
+
+    def _beside(self, click: Click, cam: Camera, selected: np.ndarray) -> bool:
+        """Whether the click lies inside the box of the answer's piece nearest it (its
+        projection in the view clicked in) grown by CONTEXT_GROW: a correction of the answer,
+        not a new object."""
+        if not selected.any():
+            return False
+        part = self._piece_by(click, cam, selected)
+        proj, bins = self.rast.prepare(cam)
+        shown = main_parts(selection_mask(proj, bins, part, cam.width, cam.height), BOX_KEEP)
+        box = mask_box(shown)
+        if box is None:
+            return False
+        x0, y0, x1, y1 = expand_box(box, CONTEXT_GROW, cam.width, cam.height, LEAST_GROW_PX)
+        return bool(x0 <= click.u < x1 and y0 <= click.v < y1)
+
+    def _in_context(
+        self,
+        click: Click,
+        cam: Camera,
+        selected: np.ndarray,
+        minus: list[np.ndarray],
+        check: Callable[[], None],
+    ) -> tuple[np.ndarray, dict]:
+        """A plus click beside the answer (see the module doc): SAM asked, in the views that
+        see the click, with the answer's box stretched to the click, points deep inside the
+        answer, the click, and the minus clicks as "not here"; the masks voted. A view that
+        shows nothing of the answer is not asked; when none shows any, the click is answered
+        on its own."""
+        views, pos = self._click_views(click, cam)
+        part = self._piece_by(click, cam, selected)
+        evidence = []
+        for c in views:
+            check()
+            proj, bins = self.rast.prepare(c)
+            main = main_parts(selection_mask(proj, bins, part, c.width, c.height), BOX_KEEP)
+            (u, v), = pos[c.name]  # fmt: skip
+            box = mask_box(main)
+            if box is None:
+                continue
+            box = np.array([min(box[0], u), min(box[1], v), max(box[2], u + 1), max(box[3], v + 1)])
+            box = expand_box(box, TIGHT, c.width, c.height, 0.0)
+            neg = _negatives(minus, c, self.rast, self.p.depth_tolerance)
+            pos_pts = np.concatenate([interior_points(main, INTERIOR_POINTS), pos[c.name]])
+            pts = np.concatenate([pos_pts, neg]) if self.sam.takes_points else pos_pts[:0]
+            labels = np.r_[np.ones(len(pos_pts)), np.zeros(len(neg))][: len(pts)]
+            evidence.append(view_evidence(self.rast, c, self._ask(c, pts, labels, box)))
+        if not evidence:
+            seed = self._seed(click, cam, minus)
+            return self._grow(seed, minus, check, self.p.granularity)
+        got = self._vote(evidence, lenient=False)
+        record = {"prompt": f"click {click.text()}", "views": [c.name for c in views],
+                  "rounds": [int(got.sum())], "context": True}  # fmt: skip
+        return got, record
 
     # -- growing ----------------------------------------------------------------------------
 

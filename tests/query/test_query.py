@@ -156,7 +156,7 @@ def test_lifted_query_select_render_mask_and_fit_hyperplane(queried, tmp_path):
     assert isinstance(art.lifted["fusion"]["core_kin_gaussians"], int)  # goi.selection 1.5
     assert art.lifted["clean"]["rule"] == "far_piece"  # goi.selection 1.6
     with h5py.File(out / safe_name(f"object {OBJ}") / "selection.h5") as f:
-        assert f.attrs["schema_version"] == "1.7"
+        assert f.attrs["schema_version"] == "1.8"
         assert f["lifted/S1"].shape == sel.shape
     common = [
         "--scene", str(s["scene"]), "--field", str(run / "field.h5"), "--prompt", f"object {OBJ}",
