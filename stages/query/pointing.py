@@ -121,8 +121,8 @@ FEW_VIEWS = 8
 TIGHT = 0.05
 #: A box seed's views: the projection of the seed covers at least this many pixels there.
 SEED_PIXELS = 24
-#: A plus click inside the answer's box grown by this share of its size a side (in the view
-#: clicked in) is read in the answer's context (see the module doc).
+#: A plus click inside the box of the answer's piece nearest it, grown by this share of its
+#: size a side (in the view clicked in), is read in the answer's context (see the module doc).
 CONTEXT_GROW = 0.3
 
 
@@ -423,8 +423,9 @@ class Pointer:
                     partial(so_far | got if plus else so_far & ~got, label)
 
             how = p.granularity if plus else p.minus_granularity
-            if plus and isinstance(what, Click) and self._beside(what, cam, selected):
-                got, rec = self._in_context(what, cam, selected, other, check)
+            piece = self._piece_beside(what, cam, selected) if plus else None
+            if piece is not None and isinstance(what, Click):
+                got, rec = self._in_context(what, cam, piece, other, check)
                 shown(got, f"click {what.text()}: with the answer")
             else:
                 got, rec = self._grow(self._seed(what, cam, other), other, check, how, shown)
@@ -568,58 +569,55 @@ class Pointer:
 
     # -- a click in the answer's context ---------------------------------------------------
 
-    def _piece_by(self, click: Click, cam: Camera, selected: np.ndarray) -> np.ndarray:
-        """[G] bool: the answer's 3D piece (Gaussians linked closer than clean.LINK of the
-        scene's extent) nearest the click's point: of "armchairs", the chair clicked beside."""
-        X = click_point(self.rast, cam, click)
+    def _piece_beside(
+        self, what: Click | BoxPrompt, cam: Camera, selected: np.ndarray
+    ) -> np.ndarray | None:
+        """[G] bool: the answer's piece a click is beside, or None (a box, no answer, or a
+        click away from it). The piece: the answer's Gaussians linked closer than clean.LINK
+        of the scene's extent nearest the click's point, with the pieces within clean.NEAR of
+        it (of "armchairs", the chair clicked beside; of a plant, its fronds). Beside: inside
+        the box of its projection in the view clicked in, grown by CONTEXT_GROW."""
+        if not isinstance(what, Click) or not selected.any():
+            return None
+        X = click_point(self.rast, cam, what)
         means = self.rast.means
         if self._extent is None:
             self._extent = robust_extent(means)
         idx = np.flatnonzero(selected)
-        piece = components(means[idx].astype(np.float64), LINK * self._extent)
-        pts = means[idx].astype(np.float64)
-        nearest = piece == piece[int(np.argmin(((pts - X) ** 2).sum(1)))]
+        pts = means[idx].astype(np.float64)  # [S, 3]
+        label = components(pts, LINK * self._extent)  # [S] the answer's pieces
+        nearest = label == label[int(np.argmin(((pts - X) ** 2).sum(1)))]
         # with the pieces near it: a plant's fronds, a few cm apart, are one thing to correct
         close = near_any(pts, pts[nearest], NEAR_PIECE * self._extent)
         out = np.zeros_like(selected, dtype=bool)
-        out[idx[np.isin(piece, np.unique(piece[close]))]] = True
-        return out
-
-    def _beside(self, click: Click, cam: Camera, selected: np.ndarray) -> bool:
-        """Whether the click lies inside the box of the answer's piece nearest it (its
-        projection in the view clicked in) grown by CONTEXT_GROW: a correction of the answer,
-        not a new object."""
-        if not selected.any():
-            return False
-        part = self._piece_by(click, cam, selected)
+        out[idx[np.isin(label, np.unique(label[close]))]] = True
         proj, bins = self.rast.prepare(cam)
-        shown = main_parts(selection_mask(proj, bins, part, cam.width, cam.height), BOX_KEEP)
-        box = mask_box(shown)
+        box = mask_box(main_parts(selection_mask(proj, bins, out, cam.width, cam.height),
+                                  BOX_KEEP))  # fmt: skip
         if box is None:
-            return False
+            return None
         x0, y0, x1, y1 = expand_box(box, CONTEXT_GROW, cam.width, cam.height, LEAST_GROW_PX)
-        return bool(x0 <= click.u < x1 and y0 <= click.v < y1)
+        return out if x0 <= what.u < x1 and y0 <= what.v < y1 else None
 
     def _in_context(
         self,
         click: Click,
         cam: Camera,
-        selected: np.ndarray,
+        piece: np.ndarray,
         minus: list[np.ndarray],
         check: Callable[[], None],
     ) -> tuple[np.ndarray, dict]:
-        """A plus click beside the answer (see the module doc): SAM asked, in the views that
-        see the click, with the answer's box stretched to the click, points deep inside the
-        answer, the click, and the minus clicks as "not here"; the masks voted. A view that
-        shows nothing of the answer is not asked; when none shows any, the click is answered
-        on its own."""
+        """A plus click beside the answer's `piece` [G] (see the module doc): SAM asked, in
+        the views that see the click, with the piece's box stretched to the click, points
+        deep inside the piece, the click, and the minus clicks as "not here"; the masks voted.
+        A view that shows nothing of the piece is not asked; when none shows any, the click is
+        answered on its own."""
         views, pos = self._click_views(click, cam)
-        part = self._piece_by(click, cam, selected)
         evidence = []
         for c in views:
             check()
             proj, bins = self.rast.prepare(c)
-            main = main_parts(selection_mask(proj, bins, part, c.width, c.height), BOX_KEEP)
+            main = main_parts(selection_mask(proj, bins, piece, c.width, c.height), BOX_KEEP)
             (u, v), = pos[c.name]  # fmt: skip
             box = mask_box(main)
             if box is None:
@@ -628,8 +626,8 @@ class Pointer:
             box = expand_box(box, TIGHT, c.width, c.height, 0.0)
             neg = _negatives(minus, c, self.rast, self.p.depth_tolerance)
             pos_pts = np.concatenate([interior_points(main, INTERIOR_POINTS), pos[c.name]])
-            pts = np.concatenate([pos_pts, neg]) if self.sam.takes_points else pos_pts[:0]
-            labels = np.r_[np.ones(len(pos_pts)), np.zeros(len(neg))][: len(pts)]
+            pts = np.concatenate([pos_pts, neg])  # a click's SAM takes points (answer checks)
+            labels = np.r_[np.ones(len(pos_pts)), np.zeros(len(neg))]
             evidence.append(view_evidence(self.rast, c, self._ask(c, pts, labels, box)))
         if not evidence:
             seed = self._seed(click, cam, minus)
