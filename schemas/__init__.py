@@ -23,6 +23,7 @@ import h5py
 import numpy as np
 
 from stages.core.errors import GoiError
+from stages.core.hdf5 import read_h5
 
 PROVENANCE_ATTRS = ("goi_version", "command", "created", "inputs")
 #: A dataset declaring more than this is refused before anything is read: HDF5 can declare a
@@ -207,7 +208,7 @@ def validate_file(
         errors, schema = ["no such file"], ""
     else:
         try:
-            with h5py.File(p, "r") as f:
+            with read_h5(p) as f:
                 errors, schema = _validate_open(f, expected)
         except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
             # h5py reports damaged metadata with any of these

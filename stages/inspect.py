@@ -15,6 +15,7 @@ import numpy as np
 from schemas import validate_file
 from stages.core.errors import GoiError
 from stages.core.files import regular_file
+from stages.core.hdf5 import read_h5
 from stages.scene.gaussians import load_ply
 
 if TYPE_CHECKING:
@@ -146,7 +147,7 @@ def inspect_file(path: str | os.PathLike[str]) -> tuple[list[str], list[str]]:
         schema, problems = validate_file(p)
         lines = [f"{p}: HDF5 artifact {schema or '(no goi schema)'}"]
         try:
-            with h5py.File(p, "r") as f:
+            with read_h5(p) as f:
                 lines += _describe_h5(f)
         except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
             return lines, problems or [f"not a readable HDF5 file ({str(e)[:200]})"]

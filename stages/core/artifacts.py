@@ -23,6 +23,7 @@ import numpy as np
 from stages import __version__
 from stages.core.errors import GoiError
 from stages.core.files import check_output_name, file_in_the_way, refuse_if_input, with_option
+from stages.core.hdf5 import read_h5
 from stages.core.staging import current_stage, fsync_dir
 
 #: argv of the running command, recorded in every artifact (the CLI sets it; tests may not).
@@ -164,7 +165,7 @@ def open_h5(path: str | os.PathLike[str], schema: str) -> Iterator[h5py.File]:
 
     validate_file(path, expected=schema, raise_on_error=True)
     try:
-        with h5py.File(path, "r") as f:
+        with read_h5(path) as f:
             yield f
     except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
         raise GoiError(f"{path}: damaged HDF5 artifact ({str(e)[:200]})") from None

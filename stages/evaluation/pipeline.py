@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
-import h5py
 import numpy as np
 
 from schemas import current_version, validate_json
@@ -32,6 +31,7 @@ from stages.core.artifacts import (
 )
 from stages.core.errors import GoiError
 from stages.core.files import check_output_file, check_output_name, make_dir, refuse_inputs
+from stages.core.hdf5 import read_h5
 from stages.core.params import AT_LEAST_1, COSINE, SEED, Range, check_params
 from stages.core.report import SILENT, Report
 from stages.core.staging import staged_outputs
@@ -584,7 +584,7 @@ def _made_by_eval(path: Path) -> bool:
         except (OSError, ValueError, AttributeError):
             return False
     try:
-        with h5py.File(path, "r") as f:
+        with read_h5(path) as f:
             return str(f.attrs.get("command", "")).startswith("goi eval")
     except (OSError, ValueError, TypeError, RuntimeError):
         return False

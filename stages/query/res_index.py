@@ -56,6 +56,7 @@ from stages.core.files import (
     refuse_inputs,
     regular_file,
 )
+from stages.core.hdf5 import read_h5
 from stages.core.params import Range
 from stages.core.report import SILENT, Report
 from stages.models.bundle import Bundle, load_bundle
@@ -283,7 +284,7 @@ class IndexWriter:
         mode = "w"
         if partial_exists(self.partial, self.option):
             try:
-                with h5py.File(self.partial, "r") as f:
+                with read_h5(self.partial) as f:
                     same = json.loads(f.attrs.get("inputs", "{}")) == self.inputs
             except (OSError, ValueError):
                 same = False
@@ -506,7 +507,7 @@ def _unsound_partial(
     must pass the index's own reader, hold this bundle's arrays and this image's digest."""
     try:
         _links_inside(partial)
-        with h5py.File(partial, "r") as f:
+        with read_h5(partial) as f:
             views = f.get("views", getlink=True)
             if not isinstance(views, h5py.HardLink) or not isinstance(f["views"], h5py.Group):
                 return "'views' is not a group"
@@ -553,7 +554,7 @@ def _links_inside(path: Path) -> None:
     link, a soft link or a dataset whose data lives in another file (external storage, a
     virtual dataset) would make a reader open what the index names."""
     try:
-        with h5py.File(path, "r") as f:
+        with read_h5(path) as f:
             todo: list[tuple[str, h5py.Group]] = [("", f)]
             while todo:
                 prefix, g = todo.pop()
@@ -593,7 +594,7 @@ class ResIndex:
         """The view's stored image-side arrays (as res_image_side returned them)."""
         if view not in self.views:
             raise GoiError(f"--res-index: {self.path} holds no view '{view}'")
-        with h5py.File(self.path, "r") as f:
+        with read_h5(self.path) as f:
             g = f["views"].get(view)
             # another index renamed over this one since it was opened: a grown one holds the
             # same view (same digest); anything else is refused

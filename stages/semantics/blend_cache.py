@@ -24,6 +24,7 @@ import numpy as np
 from stages.core.artifacts import check_writable, open_h5, put, stamp, write_h5
 from stages.core.errors import GoiError
 from stages.core.files import create_partial, finish_partial, partial_exists, regular_file
+from stages.core.hdf5 import read_h5
 from stages.core.report import SILENT, Report, size_text
 from stages.core.staging import kept_on_interrupt
 from stages.render.composite import blend_weights, pooled_blend_weights
@@ -322,7 +323,7 @@ def _partial_problem(
     identity is not believed alone; the Gaussian count, the column order, and each finished
     view's grid and weights are checked against the real inputs."""
     try:
-        with h5py.File(partial, "r") as f:
+        with read_h5(partial) as f:
             a = f.attrs
             if not all(a.get(key) == value for key, value in identity.items()):
                 return "made from other inputs or options"
@@ -376,7 +377,7 @@ def ensure_cache(
 
 def cache_nbytes(path: str | os.PathLike[str], views: list[str]) -> dict[str, int]:
     """Each view's weights in memory (bytes), from the dataset shapes alone."""
-    with h5py.File(path, "r") as f:
+    with read_h5(path) as f:
         return {
             v: sum(f["views"][v][d].size * f["views"][v][d].dtype.itemsize for d in _ARRAYS)
             for v in views
@@ -390,7 +391,7 @@ def _matches(
     p: Path, ply_sha: str, cam_sha: str, k: int, want: dict[str, tuple[int, int]], n: int
 ) -> bool:
     try:
-        with h5py.File(p, "r") as f:
+        with read_h5(p) as f:
             a, views = f.attrs, f.get("views", {})
             return (
                 a.get("schema") == SCHEMA

@@ -22,6 +22,7 @@ import numpy as np
 
 from stages.core.artifacts import put, write_h5
 from stages.core.errors import GoiError
+from stages.core.hdf5 import read_h5
 from stages.core.report import SILENT, Report
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
@@ -155,7 +156,7 @@ def plan_shard(
 
 def _matches(p: Path, attrs: dict[str, str | int], views: list[str]) -> bool:
     try:
-        with h5py.File(p, "r") as f:
+        with read_h5(p) as f:
             a = f.attrs
             return (
                 a.get("schema") == SCHEMA
@@ -208,7 +209,7 @@ def build_shards(
             views = out.create_group("views", track_order=True)
             for i, cam in enumerate(cameras):
                 owner = _parts_path(cache, i % ranks.world, ranks.world)
-                with h5py.File(owner, "r") as f:
+                with read_h5(owner) as f:
                     src = f[cam.name][str(ranks.rank)]
                     views.copy(src, cam.name)
         ranks.barrier("the blend cache's shards")
@@ -220,7 +221,7 @@ def build_shards(
 
 def shard_order(plan: ShardPlan) -> np.ndarray:
     """[hi - lo] int32: the PLY ids of the shard's columns, checked against the plan."""
-    with h5py.File(plan.path, "r") as f:
+    with read_h5(plan.path) as f:
         order = f["order"][()]
     if order.shape != (plan.hi - plan.lo,) or (
         len(order) and (order.min() < 0 or order.max() >= plan.n_gaussians)

@@ -25,6 +25,7 @@ from stages.core.files import (
     partial_exists,
     refuse_inputs,
 )
+from stages.core.hdf5 import read_h5
 from stages.core.params import AT_LEAST_1, Choice, check_params
 from stages.core.report import SILENT, Report
 from stages.core.staging import kept_on_interrupt
@@ -76,7 +77,7 @@ def _write_views(run: ExtractRun, job: _Views, report: Report) -> Path:
         mode = "w"
         if partial_exists(partial, "--out"):
             try:
-                with h5py.File(partial, "r") as f:
+                with read_h5(partial) as f:
                     same = json.loads(f.attrs.get("inputs", "{}")) == job.inputs
             except (OSError, ValueError, TypeError):
                 same = False

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import os
 
-import h5py
 import numba
 import numpy as np
 import torch
 
 from stages.core.artifacts import open_h5
 from stages.core.errors import GoiError
+from stages.core.hdf5 import read_h5
 from stages.semantics.blend_cache import SCHEMA, BlendCache, read_order, read_view
 
 
@@ -159,7 +159,7 @@ class FeatureRenderer:
         view once before, so the per-step read skips the schema validation of the whole file
         as well). A distributed fit reads its shard of the cache (`schema`
         goi.blend_cache_shard, with its columns' `order`) the same way."""
-        opened = open_h5(path, schema) if check else h5py.File(path, "r")
+        opened = open_h5(path, schema) if check else read_h5(path)
         with opened as f:
             n = int(f.attrs["n_gaussians"])
             order = read_order(f, path) if order is None else order

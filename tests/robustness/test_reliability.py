@@ -256,3 +256,41 @@ def test_hdf5_reader_on_arbitrary_bytes(tmp_path_factory, data):
     p.write_bytes(b"\x89HDF\r\n\x1a\n" + data)
     with pytest.raises(GoiError):
         load_features(p)
+
+
+def _zero_free_space(data: bytearray) -> None:
+    """Damage the file's first global heap collection as a stray write can: its free-space
+    object (index 0) declares size 0, the object libhdf5's walk of the collection loops on."""
+    at = data.find(b"GCOL")
+    assert at >= 0, "the artifact holds no variable-length string: nothing to damage here"
+    end, p = at + int.from_bytes(data[at + 8 : at + 16], "little"), at + 16
+    while p + 16 <= end:
+        idx, size = (
+            int.from_bytes(data[p : p + 2], "little"),
+            int.from_bytes(data[p + 8 : p + 16], "little"),
+        )
+        if idx == 0:
+            data[p + 8 : p + 16] = bytes(8)
+            return
+        p += 16 + (size + 7) // 8 * 8
+    raise AssertionError("no free space in the collection")
+
+
+def test_a_damaged_global_heap_is_refused_not_hung_on(small, tmp_path):
+    # libhdf5 2.0 spins forever reading a string attribute from such a file (the fuzz test
+    # above once found it): each reader runs in a child with a deadline, so a hang fails here
+    data = bytearray((small["root"] / "c.h5").read_bytes())
+    _zero_free_space(data)
+    p = tmp_path / "c.h5"
+    p.write_bytes(bytes(data))
+    done = subprocess.run([sys.executable, "-m", "goi_cli", "inspect", str(p)],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    said = done.stdout + done.stderr  # inspect lists the problems on stdout
+    assert done.returncode == 2, said
+    assert str(p) in said and "global heap collection" in said and "Traceback" not in said
+    code = ("import sys\nfrom stages.core.errors import GoiError\n"
+            "from stages.semantics.codebook import load_codebook\n"
+            f"try:\n    load_codebook({str(p)!r})\n"
+            "except GoiError as e:\n    sys.exit(str(e))\n")  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1 and str(p) in done.stderr and "global heap" in done.stderr
