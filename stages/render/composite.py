@@ -529,15 +529,20 @@ def render(
     width: int,
     height: int,
     background: np.ndarray | None = None,
+    tiles: np.ndarray | None = None,
 ) -> Rendered:
-    """Composite per-Gaussian values `colors` [N, C] (RGB or features) into an image."""
+    """Composite per-Gaussian values `colors` [N, C] (RGB or features) into an image.
+    `tiles` [n] int64: walk only these tiles; the others are left 0 (no weight, no value)."""
     colors = np.ascontiguousarray(colors, np.float32)
-    out = np.empty((height, width, colors.shape[1]), np.float32)
-    alpha = np.empty((height, width), np.float32)
-    depth = np.empty((height, width), np.float32)
+    alloc = np.empty if tiles is None else np.zeros
+    out = alloc((height, width, colors.shape[1]), np.float32)
+    alpha = alloc((height, width), np.float32)
+    depth = alloc((height, width), np.float32)
+    more = {} if tiles is None else {"tile_list": np.ascontiguousarray(tiles, np.int64)}
     _walk(
-        RENDER, proj, bins, width, height, colors=colors, out=out, alpha_out=alpha, depth_out=depth
-    )
+        RENDER, proj, bins, width, height, colors=colors, out=out, alpha_out=alpha,
+        depth_out=depth, **more,
+    )  # fmt: skip
     if background is not None:
         out += (1.0 - alpha)[:, :, None] * np.asarray(background, np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):

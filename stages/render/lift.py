@@ -25,7 +25,7 @@ import numpy as np
 from stages.render.composite import label_sums, render
 from stages.render.constants import TILE
 from stages.render.projection import Projected
-from stages.render.tiles import Bins
+from stages.render.tiles import Bins, tiles_holding
 
 #: Private accumulation buffers (see the module doc). 8 keeps 2-8 cores busy (tiles are many
 #: and dealt round-robin, so blocks carry about equal work) and costs 8 x [G, 2] float32.
@@ -49,7 +49,11 @@ def selection_mask(proj: Projected, bins: Bins, selected: np.ndarray, width: int
     """[H, W] bool: pixels where the selected Gaussians carry more than half of the pixel's
     blend weight (its alpha). The 2D answer is then the 3D selection seen from the view, so the
     two agree, and it has none of the per-pixel speckle of decoding the field."""
-    r = render(proj, bins, np.asarray(selected, np.float32)[:, None], width, height)
+    sel = np.asarray(selected, bool)
+    # only the tiles where a selected Gaussian is drawn: elsewhere the selection carries no
+    # weight and the mask is False, so the walk there decides nothing (a cup: a few tiles)
+    r = render(proj, bins, sel.astype(np.float32)[:, None], width, height,
+               tiles=tiles_holding(bins, sel))  # fmt: skip
     return r.image[:, :, 0] > 0.5 * r.alpha
 
 
@@ -58,7 +62,9 @@ def selection_masks(
 ) -> np.ndarray:
     """[H, W, K] bool: selection_mask of each of K selections ([G, K] bool) in one tile walk
     (each channel is composited alone, so each equals its own selection_mask bit for bit)."""
-    r = render(proj, bins, np.asarray(selections, np.float32), width, height)
+    sel = np.asarray(selections, bool)
+    r = render(proj, bins, sel.astype(np.float32), width, height,
+               tiles=tiles_holding(bins, np.any(sel, axis=1)))  # fmt: skip
     return r.image > 0.5 * r.alpha[:, :, None]
 
 

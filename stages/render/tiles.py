@@ -193,3 +193,21 @@ def bin_tiles(proj: Projected, width: int, height: int) -> Bins:
     return Bins(
         view.bins.tiles_x, view.bins.tiles_y, view.bins.offsets, view.gaussians[view.bins.ids]
     )
+
+
+@numba.njit(parallel=True, cache=True)
+def _holding(offsets, ids, chosen):
+    n = offsets.shape[0] - 1
+    out = np.zeros(n, np.bool_)
+    for t in numba.prange(n):
+        for k in range(offsets[t], offsets[t + 1]):
+            if chosen[ids[k]]:
+                out[t] = True
+                break
+    return out
+
+
+def tiles_holding(bins: Bins, chosen: np.ndarray) -> np.ndarray:
+    """[n] int64: the tiles whose list holds at least one `chosen` [N] bool Gaussian, in order.
+    A render of values that are 0 on every other Gaussian is 0 outside them."""
+    return np.flatnonzero(_holding(bins.offsets, bins.ids, np.ascontiguousarray(chosen, np.bool_)))

@@ -104,6 +104,28 @@ def test_selection_mask_is_the_selected_share(tmp_path):
     )
 
 
+def test_selection_masks_walk_only_the_tiles_the_selection_is_drawn_in(tmp_path):
+    """The same bits as the walk of every tile: a tile without a selected Gaussian has none of
+    the selection's weight. A compact selection (a corner of the image) walks few tiles."""
+    from stages.render.composite import render
+    from stages.render.tiles import tiles_holding
+
+    g, r = _scene(tmp_path, n=600, seed=7)
+    cam = front_camera(128, 96)
+    proj, bins = r.prepare(cam)
+    corner = (proj.means2d[:, 0] < 40) & (proj.means2d[:, 1] < 30) & (proj.radii > 0)
+    spread = np.random.default_rng(3).random(g.count) < 0.1
+    for sel in (corner, spread, np.zeros(g.count, bool)):
+        full = render(proj, bins, sel.astype(np.float32)[:, None], cam.width, cam.height)
+        want = full.image[:, :, 0] > 0.5 * full.alpha
+        assert np.array_equal(selection_mask(proj, bins, sel, cam.width, cam.height), want)
+        both = selection_masks(proj, bins, np.stack([sel, corner], 1), cam.width, cam.height)
+        assert np.array_equal(both[:, :, 0], want)
+    tiles = tiles_holding(bins, corner)
+    assert corner.sum() > 5 and 0 < len(tiles) < bins.tiles_x * bins.tiles_y
+    assert selection_mask(proj, bins, corner, cam.width, cam.height).any()
+
+
 def test_selection_masks_are_each_selections_mask_in_one_walk(tmp_path):
     g, r = _scene(tmp_path, n=400, seed=5)
     cam = front_camera(64, 48)
