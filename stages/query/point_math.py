@@ -93,6 +93,12 @@ def mask_box(mask: np.ndarray) -> np.ndarray | None:
     return np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64)
 
 
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two [H, W] bool masks (0 when both are empty)."""
+    union = int(np.count_nonzero(a | b))
+    return int(np.count_nonzero(a & b)) / union if union else 0.0
+
+
 def expand_box(box: np.ndarray, share: float, width: int, height: int, least: float) -> np.ndarray:
     """[4] the box grown by `share` of its width and height on every side (at least `least`
     pixels), clipped to the image."""

@@ -133,9 +133,10 @@ class ViewPointer(Pointer):
         lifted: Lifted = fuse(evidence, entry, np.zeros(n, bool), np.zeros(1, bool), lp)
         masks = ViewMasks()
         for e in evidence:
+            # each view's latest mask: the tight round counts a view's grown-round mask again
+            # without asking (Pointer._box_round), and that is the one shown
             if e.view in self._asked:
                 masks.add(e.view, self._asked[e.view])
-        self._asked = {}
         E = lifted.S1 + lifted.S0
         self.last = RoundVote(
             vote_share(lifted, lp, None), E >= lp.min_evidence, dict(lifted.confidence), masks

@@ -230,6 +230,29 @@ def test_one_click_per_object_answers_the_object(pointer):
     assert sum(s[0] >= 0.5 for s in scores.values()) >= 0.75 * len(scores), scores
 
 
+@pytest.mark.slow
+def test_the_tight_round_asks_again_only_the_views_whose_outline_moved(pointer, monkeypatch):
+    """A view whose grown-round mask already is the grown answer's projection is not asked
+    again with a box that fits it: fewer decoder runs, the same object."""
+    import stages.query.pointing as pointing
+
+    gid = np.load(DEV_ROOM / "gaussian_ids.npy")
+    ball = gid == 22
+    x, y = _interior(_ids(VIEW) == 22)
+    click = [Click(VIEW, x, y, True)]
+    kept = pointer.answer(click, [])
+    monkeypatch.setattr(pointing, "SAME_OUTLINE", 1.01)  # every view asked again
+    asked = pointer.answer(click, [])
+    runs = kept.record["decoder_runs"], asked.record["decoder_runs"]
+    views = len(asked.record["answers"][0]["views"])
+    assert runs[1] == 1 + 3 * views and runs[0] < runs[1] - views // 2, (runs, views)
+
+    def iou(sel):
+        return (sel & ball).sum() / (sel | ball).sum()
+
+    assert iou(kept.selected) > 0.8 and abs(iou(kept.selected) - iou(asked.selected)) < 0.02
+
+
 def _deepest_click(pointer, part):
     """The pixel deepest inside `part` [G] in the training view that shows most of it."""
     from stages.render.lift import selection_mask
