@@ -20,14 +20,15 @@ from functools import lru_cache
 import h5py
 
 #: Layout of a global heap collection (HDF5 file format spec, "Global Heap"): the signature,
-#: a version byte (1), 3 reserved bytes and the collection's size; then objects, each a 16-byte
-#: header (index u16, reference count u16, 4 reserved, size u64) and its data padded to 8 bytes.
-#: Object 0 is the collection's free space, its size counting its own header.
+#: a version byte (1), 3 reserved bytes and the collection's size; then objects, each a header
+#: (index u16, reference count u16, 4 reserved, size) and its data padded to 8 bytes. Object 0
+#: is the collection's free space, its size counting its own header. Sizes take the file's
+#: "size of lengths" bytes (the superblock's; 8 from h5py), and both headers are padded to 8.
+Buffer = bytes | mmap.mmap  # the file's bytes, mapped or read
 _SIGNATURE = b"GCOL"
-_HEAD = 16
-_OBJ_HEAD = 16
-#: libhdf5 never makes a collection smaller than this (H5HG_MINSIZE); the signature found in a
-#: smaller one is a chance match inside other data, not a collection.
+_HDF5 = b"\x89HDF\r\n\x1a\n"
+#: libhdf5 never makes a collection smaller than this (H5HG_MINSIZE), and refuses one that
+#: claims less with an error; the signature found in a smaller one is no collection to walk.
 _MIN_COLLECTION = 4096
 
 
@@ -35,51 +36,73 @@ def _align8(n: int) -> int:
     return (n + 7) & ~7
 
 
-def _walk_collection(buf: mmap.mmap, at: int) -> str | None:
+def _size_of_lengths(buf: Buffer) -> int:
+    """The superblock's size of lengths (at byte 0, 512, 1024, ...; 8 when none is found):
+    superblock versions 0 and 1 hold it at byte 14, versions 2 and 3 at byte 10."""
+    at = 0
+    while at + 16 <= len(buf):
+        if buf[at : at + 8] == _HDF5:
+            size = buf[at + 14] if buf[at + 8] in (0, 1) else buf[at + 10]
+            return size if size in (2, 4, 8, 16) else 8
+        at = 512 if at == 0 else at * 2
+    return 8
+
+
+def _walk_collection(buf: Buffer, at: int, length: int) -> str | None:
     """The problem that would stop libhdf5's walk of the collection at `at`, or None."""
-    if buf[at + 4] != 1 or buf[at + 5 : at + 8] != b"\0\0\0":
+    head = _align8(8 + length)  # the collection's header and each object's
+    if at + head > len(buf) or buf[at + 4] != 1 or buf[at + 5 : at + 8] != b"\0\0\0":
         return None  # not a collection header: libhdf5 refuses one like it with an error
-    size = int.from_bytes(buf[at + 8 : at + 16], "little")
+    size = int.from_bytes(buf[at + 8 : at + 8 + length], "little")
     if size < _MIN_COLLECTION:
         return None
     end = at + size
     if end > len(buf):
         return f"global heap collection at byte {at} runs past the end of the file"
-    p = at + _HEAD
+    p = at + head
     while p < end:
-        if p + _OBJ_HEAD > end:
+        if p + head > end:
             break  # a tail too small for a header is free space, as libhdf5 reads it
         idx = int.from_bytes(buf[p : p + 2], "little")
-        obj = int.from_bytes(buf[p + 8 : p + 16], "little")
-        need = _OBJ_HEAD + _align8(obj) if idx > 0 else obj
-        if need < _OBJ_HEAD or p + need > end:
+        obj = int.from_bytes(buf[p + 8 : p + 8 + length], "little")
+        need = head + _align8(obj) if idx > 0 else obj
+        if need < head or p + need > end:
             return f"global heap collection at byte {at} has a damaged object at byte {p}"
         p += need
     return None
 
 
+def _scan(buf: Buffer) -> str | None:
+    length = _size_of_lengths(buf)
+    at = buf.find(_SIGNATURE)
+    while at >= 0:
+        problem = _walk_collection(buf, at, length)
+        if problem:
+            return problem
+        at = buf.find(_SIGNATURE, at + 1)
+    return None
+
+
 @lru_cache(maxsize=256)
-def _heap_problem(path: str, size: int, mtime_ns: int, inode: int) -> str | None:
-    del size, mtime_ns, inode  # the cache key: a file rewritten in place is walked again
+def _heap_problem(path: str, key: tuple[int, ...]) -> str | None:
+    del key  # size, mtime, ctime, inode, device: a file changed in any way is walked again
     with open(path, "rb") as fh:
         if os.fstat(fh.fileno()).st_size == 0:
             return None
-        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-            at = buf.find(_SIGNATURE)
-            while at >= 0:
-                if at + _HEAD <= len(buf):
-                    problem = _walk_collection(buf, at)
-                    if problem:
-                        return problem
-                at = buf.find(_SIGNATURE, at + 1)
-    return None
+        try:
+            buf = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+        except (OSError, ValueError):  # a file system that cannot map files: read it whole
+            return _scan(fh.read())
+        with buf:
+            return _scan(buf)
 
 
 def heap_problem(path: str | os.PathLike[str]) -> str | None:
     """Why libhdf5 would hang reading `path` (a damaged global heap), or None."""
     p = os.fspath(path)
     st = os.stat(p)
-    return _heap_problem(os.path.realpath(p), st.st_size, st.st_mtime_ns, st.st_ino)
+    key = (st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, st.st_dev)
+    return _heap_problem(os.path.realpath(p), key)
 
 
 class DamagedHDF5(OSError):

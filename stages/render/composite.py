@@ -539,10 +539,11 @@ def render(
     alpha = alloc((height, width), np.float32)
     depth = alloc((height, width), np.float32)
     more = {} if tiles is None else {"tile_list": np.ascontiguousarray(tiles, np.int64)}
-    _walk(
-        RENDER, proj, bins, width, height, colors=colors, out=out, alpha_out=alpha,
-        depth_out=depth, **more,
-    )  # fmt: skip
+    if tiles is None or len(tiles):  # an empty tile_list would tell the kernel: every tile
+        _walk(
+            RENDER, proj, bins, width, height, colors=colors, out=out, alpha_out=alpha,
+            depth_out=depth, **more,
+        )  # fmt: skip
     if background is not None:
         out += (1.0 - alpha)[:, :, None] * np.asarray(background, np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -137,6 +137,8 @@ class ViewPointer(Pointer):
             # without asking (Pointer._box_round), and that is the one shown
             if e.view in self._asked:
                 masks.add(e.view, self._asked[e.view])
+        # only this vote's views: the next round counts no other again (a session asks many)
+        self._asked = {e.view: self._asked[e.view] for e in evidence if e.view in self._asked}
         E = lifted.S1 + lifted.S0
         self.last = RoundVote(
             vote_share(lifted, lp, None), E >= lp.min_evidence, dict(lifted.confidence), masks
