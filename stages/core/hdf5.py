@@ -110,16 +110,11 @@ class DamagedHDF5(OSError):
     handles both alike (a partial file is started again, an artifact refused by name)."""
 
 
-def check_readable(path: str | os.PathLike[str]) -> None:
-    """Raise DamagedHDF5 when reading `path` would hang libhdf5."""
-    problem = heap_problem(path)
-    if problem:
-        raise DamagedHDF5(problem)
-
-
 @contextlib.contextmanager
 def read_h5(path: str | os.PathLike[str]) -> Iterator[h5py.File]:
     """`h5py.File(path, "r")`, refused first (DamagedHDF5) when it would hang libhdf5."""
-    check_readable(path)
+    problem = heap_problem(path)
+    if problem:
+        raise DamagedHDF5(problem)
     with h5py.File(path, "r") as f:
         yield f

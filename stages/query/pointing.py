@@ -765,7 +765,6 @@ class Pointer:
         when no view sees anything of it), and each view's mask with its lift. A view whose
         mask in `last` (the round before) already is `selected`'s projection (IoU >=
         SAME_OUTLINE) is not asked again: its mask and lift count as they are."""
-        evidence = []
         outlines: Outlines = {}
         for cam in seed.views:
             check()
@@ -777,7 +776,6 @@ class Pointer:
                 continue  # this view sees nothing of the answer
             if cam.name in last and mask_iou(last[cam.name][0], main) >= SAME_OUTLINE:
                 outlines[cam.name] = last[cam.name]
-                evidence.append(last[cam.name][1])
                 continue
             own = seed.own.get(cam.name, np.zeros((0, 2)))
             pos = np.concatenate([own, interior_points(main, INTERIOR_POINTS)])
@@ -786,7 +784,7 @@ class Pointer:
             box = expand_box(box, share, cam.width, cam.height, LEAST_GROW_PX * (share > TIGHT))
             mask = self._ask(cam, pts, labels, box)
             outlines[cam.name] = (mask, view_evidence(self.rast, cam, mask))
-            evidence.append(outlines[cam.name][1])
+        evidence = [lifted for _, lifted in outlines.values()]
         return (self._vote(evidence, lenient=False) if evidence else None), outlines
 
     @staticmethod

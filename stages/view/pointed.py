@@ -131,14 +131,13 @@ class ViewPointer(Pointer):
         lp: LiftParams = self.lenient_lp if lenient else self.vote_lp
         entry = np.zeros(n, np.int32)  # no field: the vote alone decides (as Pointer._vote)
         lifted: Lifted = fuse(evidence, entry, np.zeros(n, bool), np.zeros(1, bool), lp)
-        masks = ViewMasks()
-        for e in evidence:
-            # each view's latest mask: the tight round counts a view's grown-round mask again
-            # without asking (Pointer._box_round), and that is the one shown
-            if e.view in self._asked:
-                masks.add(e.view, self._asked[e.view])
-        # only this vote's views: the next round counts no other again (a session asks many)
+        # each voting view's latest mask, the one shown: the tight round counts a view's
+        # grown-round mask again without asking (Pointer._box_round); only these are kept, as
+        # the next round counts no other again (a session asks many views)
         self._asked = {e.view: self._asked[e.view] for e in evidence if e.view in self._asked}
+        masks = ViewMasks()
+        for view, mask in self._asked.items():
+            masks.add(view, mask)
         E = lifted.S1 + lifted.S0
         self.last = RoundVote(
             vote_share(lifted, lp, None), E >= lp.min_evidence, dict(lifted.confidence), masks
