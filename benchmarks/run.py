@@ -457,12 +457,29 @@ def _lifted(renderer, train, novel, text, tmp: Path, repeat: int) -> dict[str, f
         ans = lift_prompt(renderer, train, src, "p", text, HyperplaneParams(), lp)
         lifted_masks(rast, ans.selected, [novel])
 
-    return {
+    out = {
         "lift_s_per_view_640x480_300k": median_s(
             lambda: view_evidence(rast, train[0], mask), repeat
         ),
         "lifted_prompt_s_640x480_300k": median_s(prompt, repeat),
     }
+    # a process that keeps the view (goi view, eval, a click's rounds) walks only the tiles
+    # around the mask once the view's visibility is kept
+    rast.keep_views(1 << 30, [train[0]])
+    view_evidence(rast, train[0], mask)  # keeps the projection and the visibility
+    out["lift_s_per_kept_view_640x480_300k"] = median_s(
+        lambda: view_evidence(rast, train[0], mask), repeat
+    )
+    small = np.zeros_like(mask)
+    small[200:260, 300:340] = True  # a small thing's mask, 40x60 pixels
+    out["lift_s_small_mask_kept_view_640x480_300k"] = median_s(
+        lambda: view_evidence(rast, train[0], small), repeat
+    )
+    rast.keep_views(0, [])
+    out["lift_kept_over_whole_walk"] = (
+        out["lift_s_per_kept_view_640x480_300k"] / out["lift_s_per_view_640x480_300k"]
+    )
+    return out
 
 
 SUITES: dict[str, Callable[[int, Path], dict[str, float]]] = {

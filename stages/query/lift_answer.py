@@ -57,7 +57,7 @@ from stages.query.osh import Hyperplane, HyperplaneParams, fit_osh, threshold_pl
 from stages.query.res import ResFiles
 from stages.query.res_index import INDEX_WAIT_S, camera_distance
 from stages.query.views import COVER, next_view, next_view_apart, provisional
-from stages.render.lift import lift_mask, selection_mask
+from stages.render.lift import selection_mask
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
 from stages.semantics.decode import SemanticRenderer
@@ -166,16 +166,15 @@ class LiftedAnswer:
 
 
 def view_evidence(rast: Rasterizer, cam: Camera, mask: np.ndarray) -> ViewEvidence:
-    """One view's mask lifted onto the Gaussians (one tile walk at full resolution)."""
-    proj, bins = rast.prepare(cam)
-    s1, s0 = lift_mask(proj, bins, mask)
+    """One view's mask lifted onto the Gaussians (a tile walk at full resolution: of the tiles
+    around the mask when the view's projection is kept, Rasterizer.lift)."""
+    s1, s0 = rast.lift(cam, mask)
     return ViewEvidence.from_dense(cam.name, s1, s0)
 
 
 def view_visibility(rast: Rasterizer, cam: Camera) -> np.ndarray:
     """[G] each Gaussian's blend weight in the view: the lift of an empty mask."""
-    proj, bins = rast.prepare(cam)
-    return lift_mask(proj, bins, np.zeros((cam.height, cam.width), bool))[1]
+    return rast.visibility(cam)
 
 
 def fit_lifted_plane(

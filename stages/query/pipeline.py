@@ -37,7 +37,7 @@ from stages.query.prompts import Prompt, text_embedding
 from stages.query.reprompt import RepromptParams, sam_reviser
 from stages.query.res import NothingFound, res_source
 from stages.query.selection import Selection, select, write_selection
-from stages.render.rasterizer import Rasterizer
+from stages.render.rasterizer import KEEP_VIEWS_BYTES, Rasterizer
 from stages.scene.cameras import Camera
 from stages.scene.scene import Scene
 from stages.semantics.decode import SemanticRenderer
@@ -458,6 +458,11 @@ def _run_pointed(
         else:
             plane = threshold_plane(prompt.text, text, field.unit_codebook(), hp.threshold)
         base, mode = select(field, plane), qp.mode
+    if not rast.keeping:
+        # a one-shot command: each round of a click walks its views again (the answer seen
+        # from each, SAM's mask lifted), on the same projections, and a kept view's lifts
+        # walk only the tiles around the mask
+        rast.keep_views(KEEP_VIEWS_BYTES, scene.views("train"))
     with open_pointer(scene, rast, points, sources.bundle, sources.res_index, report,
                       refine.index_wait) as pointer:  # fmt: skip
         answer = pointer.answer(points.clicks, points.boxes, base)

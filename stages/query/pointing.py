@@ -91,7 +91,7 @@ from stages.query.point_math import (
 )
 from stages.query.res_index import GrowingIndex, ResIndex, index_order
 from stages.render.constants import NEAR
-from stages.render.lift import lift_mask, selection_mask
+from stages.render.lift import selection_mask
 from stages.render.probe import probe
 from stages.render.rasterizer import Rasterizer
 from stages.scene.cameras import Camera
@@ -497,8 +497,7 @@ class Pointer:
         """[G] bool: the Gaussians `cam` shows inside `mask` (more of their weight in than out,
         and a pixel's worth of it: a Gaussian behind the thing outlined puts what little
         weight it has inside the mask too, the table under the cup)."""
-        proj, bins = self.rast.prepare(cam)
-        s1, s0 = lift_mask(proj, bins, mask)
+        s1, s0 = self.rast.lift(cam, mask)
         return (s1 > s0) & (s1 + s0 >= self.vote_lp.min_evidence)
 
     def _box_seed(self, box: BoxPrompt, cam: Camera, minus: list[np.ndarray]) -> Seed:

@@ -490,17 +490,32 @@ def render_backward(
     return buf.sum(axis=0)
 
 
-def label_sums(proj: Projected, bins: Bins, labels: np.ndarray, n_labels: int, lanes: int):
+def label_sums(
+    proj: Projected,
+    bins: Bins,
+    labels: np.ndarray,
+    n_labels: int,
+    lanes: int,
+    tiles: np.ndarray | None = None,
+):
     """[lanes, N, n_labels] float32: each Gaussian's weights summed over the pixels of each label
     (`labels` [H, W] uint8, each < n_labels), one sum per lane. The tiles are dealt round-robin
     to the lanes, each walked by one thread in tile order into its own sums, so the order of
-    every addition depends on the image alone, never on the threads (stages.render.lift)."""
+    every addition depends on the image alone, never on the threads (stages.render.lift).
+    `tiles` [n] int64 (ascending): walk only these, each in the lane it has in the walk of
+    every tile, so a Gaussian drawn in none of the others gets the same sums bit for bit."""
     height, width = labels.shape
     n_tiles = bins.tiles_x * bins.tiles_y
-    dealt = [np.arange(lane, n_tiles, lanes) for lane in range(lanes)]
+    if tiles is None:
+        dealt = [np.arange(lane, n_tiles, lanes) for lane in range(lanes)]
+    else:
+        tiles = np.asarray(tiles, np.int64)
+        dealt = [tiles[tiles % lanes == lane] for lane in range(lanes)]
     lane_ptr = np.zeros(lanes + 1, np.int64)
     np.cumsum([len(d) for d in dealt], out=lane_ptr[1:])
     sums = np.zeros((lanes, proj.means2d.shape[0], n_labels), np.float32)
+    if lane_ptr[-1] == 0:  # an empty tile_list would tell the kernel: every tile
+        return sums
     _walk(
         LIFT,
         proj,

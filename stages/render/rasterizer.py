@@ -14,6 +14,7 @@ import numba
 import numpy as np
 
 from stages.render.composite import Rendered, blend_weights, render
+from stages.render.lift import lift_mask, visibility
 from stages.render.projection import Projected, project
 from stages.render.sh import sh_to_rgb
 from stages.render.tiles import Bins, View, bin_tiles, compact_view
@@ -105,6 +106,26 @@ class Rasterizer:
         out = proj, bin_tiles(proj, cam.width, cam.height)
         self._keep(key, out, [*vars(out[0]).values(), *vars(out[1]).values()])
         return out
+
+    def visibility(self, cam: Camera) -> np.ndarray:
+        """[N] float64: each Gaussian's blend weight summed over the view (the s0 of an empty
+        mask's lift; 0 where the view does not see it); kept with the view's projection."""
+        key = ("visibility", *_camera_key(cam))
+        if key in self._kept:
+            self._kept.move_to_end(key)
+            return self._kept[key][1]
+        proj, bins = self.prepare(cam)
+        out = visibility(proj, bins, cam.width, cam.height)
+        self._keep(key, out, [out])
+        return out
+
+    def lift(self, cam: Camera, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The view's s1, s0 [N] float64 of `mask` [H, W] bool (stages.render.lift.lift_mask).
+        A view whose projection is kept gets its visibility kept too, and each mask's walk
+        then covers only the tiles around the mask: the same numbers, a fraction of the walk."""
+        proj, bins = self.prepare(cam)
+        keeps = self._keep_bytes > 0 and _camera_key(cam) in self._keepable
+        return lift_mask(proj, bins, mask, self.visibility(cam) if keeps else None)
 
     def view(self, cam: Camera) -> View:
         """The Gaussians `cam` sees, in rows of their own (what a render walks; see `View`)."""

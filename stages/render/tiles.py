@@ -211,3 +211,19 @@ def tiles_holding(bins: Bins, chosen: np.ndarray) -> np.ndarray:
     """[n] int64: the tiles whose list holds at least one `chosen` [N] bool Gaussian, in order.
     A render of values that are 0 on every other Gaussian is 0 outside them."""
     return np.flatnonzero(_holding(bins.offsets, bins.ids, np.ascontiguousarray(chosen, np.bool_)))
+
+
+@numba.njit(cache=True)
+def _drawn_in(offsets, ids, tiles, n):
+    out = np.zeros(n, np.bool_)
+    for t in tiles:
+        for k in range(offsets[t], offsets[t + 1]):
+            out[ids[k]] = True
+    return out
+
+
+def drawn_in(bins: Bins, tiles: np.ndarray, n: int) -> np.ndarray:
+    """[n] bool: the Gaussians whose footprint is listed in any of `tiles` [k] (the reverse of
+    tiles_holding)."""
+    tiles = np.ascontiguousarray(tiles, np.int64)
+    return _drawn_in(bins.offsets, bins.ids, tiles, n)

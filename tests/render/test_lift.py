@@ -1,8 +1,15 @@
 import numpy as np
 import pytest
 
+import stages.render.lift as lift_module
 from stages.render.composite import blend_weights
-from stages.render.lift import lift_mask, score_map, selection_mask, selection_masks
+from stages.render.lift import (
+    lift_mask,
+    score_map,
+    selection_mask,
+    selection_masks,
+    visibility,
+)
 from stages.render.rasterizer import Rasterizer
 from stages.render.reference import reference_lift, reference_project
 from stages.scene.gaussians import load_ply
@@ -73,6 +80,60 @@ def test_lift_is_deterministic(tmp_path):
     a = lift_mask(proj, bins, m)
     b = lift_mask(proj, bins, m)
     assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def _masks(cam):
+    """A small square in a corner, a blob with salt noise, a single pixel, an empty and a full
+    mask."""
+    corner = np.zeros((cam.height, cam.width), bool)
+    corner[3:14, 5:17] = True
+    pixel = np.zeros_like(corner)
+    pixel[cam.height // 2, cam.width // 2] = True
+    return [corner, _mask(cam, 7), pixel, np.zeros_like(corner), np.ones_like(corner)]
+
+
+def test_lift_with_the_visibility_walks_fewer_tiles_with_the_same_bits(tmp_path, monkeypatch):
+    """Given the view's visibility, a lift walks only the tiles around the mask, and every s1
+    and s0 is the whole walk's bit for bit (the module doc says why)."""
+    v = random_vertex(4000, seed=6)
+    for c in range(3):  # footprints of a few pixels, as a trained scene's are
+        v[f"scale_{c}"] = np.log(np.random.default_rng(c).uniform(0.004, 0.03, len(v)))
+    r = Rasterizer.from_gaussians(load_ply(write_ply(tmp_path / "small.ply", v)))
+    cam = front_camera(160, 120)
+    proj, bins = r.prepare(cam)
+    vis = visibility(proj, bins, cam.width, cam.height)
+    walked = []
+    whole = lift_module.label_sums
+
+    def counted(*args):
+        tiles = args[5] if len(args) > 5 else None
+        walked.append(bins.tiles_x * bins.tiles_y if tiles is None else len(tiles))
+        return whole(*args)
+
+    monkeypatch.setattr(lift_module, "label_sums", counted)
+    for m in _masks(cam):
+        a1, a0 = lift_mask(proj, bins, m)
+        b1, b0 = lift_mask(proj, bins, m, vis)
+        assert np.array_equal(a1, b1) and np.array_equal(a0, b0)
+    n_tiles = bins.tiles_x * bins.tiles_y
+    # corner, blob, pixel, empty, full: the corner's and the pixel's walks are partial, the
+    # empty mask walks nothing
+    assert walked[1] < n_tiles // 2 and walked[5] < n_tiles // 2 and walked[7] == 0
+    assert walked[0] == walked[2] == walked[4] == walked[6] == walked[8] == n_tiles
+    np.testing.assert_array_equal(lift_mask(proj, bins, np.zeros_like(_mask(cam, 0)))[1], vis)
+
+
+def test_a_kept_view_is_lifted_from_its_kept_visibility_with_the_same_bits(tmp_path):
+    g, r = _scene(tmp_path, n=2000, seed=8)
+    cam = front_camera(96, 72)
+    plain = [lift_mask(*r.prepare(cam), m) for m in _masks(cam)]
+    r.keep_views(1 << 30, [cam])
+    kept = [r.lift(cam, m) for m in _masks(cam)]
+    assert any(k[0] == "visibility" for k in r._kept)  # kept beside the projection
+    for (a1, a0), (b1, b0) in zip(plain, kept, strict=True):
+        assert np.array_equal(a1, b1) and np.array_equal(a0, b0)
+    with pytest.raises(ValueError, match="visibility"):
+        lift_mask(*r.prepare(cam), _masks(cam)[0], np.zeros(5))
 
 
 def test_lift_refuses_a_mask_of_another_size(tmp_path):
