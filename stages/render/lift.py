@@ -80,7 +80,9 @@ def lift_mask(
 def visibility(proj: Projected, bins: Bins, width: int, height: int) -> np.ndarray:
     """[G] float64: each Gaussian's blend weight summed over the view (the s0 of an empty mask;
     0 for the Gaussians it does not see)."""
-    return lift_mask(proj, bins, np.zeros((height, width), bool))[1]
+    # a copy: the lift's s0 is a view of its [G, 2] sums, and a kept visibility should hold
+    # only its own 8 bytes a Gaussian
+    return np.ascontiguousarray(lift_mask(proj, bins, np.zeros((height, width), bool))[1])
 
 
 def _mask_tiles(mask: np.ndarray, bins: Bins) -> np.ndarray:

@@ -21,7 +21,8 @@ from stages.render.tiles import Bins, View, bin_tiles, compact_view
 from stages.scene.cameras import Camera
 
 #: What a process answering prompt after prompt keeps of its cameras' projections and tiles
-#: (`Rasterizer.keep_views`): every camera of the dev room (about 8 MB each at 121k Gaussians),
+#: (`Rasterizer.keep_views`): every camera of the dev room (about 8 MB each at 121k Gaussians, and
+#: 1 MB of visibility once a mask is lifted there),
 #: about 80 cameras of a 300k-Gaussian scene.
 KEEP_VIEWS_BYTES = 1 << 30
 
@@ -123,6 +124,8 @@ class Rasterizer:
         """The view's s1, s0 [N] float64 of `mask` [H, W] bool (stages.render.lift.lift_mask).
         A view whose projection is kept gets its visibility kept too, and each mask's walk
         then covers only the tiles around the mask: the same numbers, a fraction of the walk."""
+        if mask.shape != (cam.height, cam.width):
+            raise ValueError(f"mask {mask.shape} != view {cam.name}'s ({cam.height}, {cam.width})")
         proj, bins = self.prepare(cam)
         keeps = self._keep_bytes > 0 and _camera_key(cam) in self._keepable
         return lift_mask(proj, bins, mask, self.visibility(cam) if keeps else None)

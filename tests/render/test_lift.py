@@ -92,13 +92,21 @@ def _masks(cam):
     return [corner, _mask(cam, 7), pixel, np.zeros_like(corner), np.ones_like(corner)]
 
 
+def _trained_like(tmp_path):
+    """Gaussians of a few pixels, as a trained scene's are, and 3 % spanning many tiles (a
+    wall's), whose tiles fall in several lanes: their sums depend on each tile's lane."""
+    v = random_vertex(4000, seed=6)
+    rng = np.random.default_rng(6)
+    big = rng.random(len(v)) < 0.03
+    for c in range(3):
+        v[f"scale_{c}"] = np.log(np.where(big, 0.15, rng.uniform(0.004, 0.03, len(v))))
+    return Rasterizer.from_gaussians(load_ply(write_ply(tmp_path / "trained.ply", v)))
+
+
 def test_lift_with_the_visibility_walks_fewer_tiles_with_the_same_bits(tmp_path, monkeypatch):
     """Given the view's visibility, a lift walks only the tiles around the mask, and every s1
     and s0 is the whole walk's bit for bit (the module doc says why)."""
-    v = random_vertex(4000, seed=6)
-    for c in range(3):  # footprints of a few pixels, as a trained scene's are
-        v[f"scale_{c}"] = np.log(np.random.default_rng(c).uniform(0.004, 0.03, len(v)))
-    r = Rasterizer.from_gaussians(load_ply(write_ply(tmp_path / "small.ply", v)))
+    r = _trained_like(tmp_path)
     cam = front_camera(160, 120)
     proj, bins = r.prepare(cam)
     vis = visibility(proj, bins, cam.width, cam.height)
@@ -123,17 +131,29 @@ def test_lift_with_the_visibility_walks_fewer_tiles_with_the_same_bits(tmp_path,
     np.testing.assert_array_equal(lift_mask(proj, bins, np.zeros_like(_mask(cam, 0)))[1], vis)
 
 
-def test_a_kept_view_is_lifted_from_its_kept_visibility_with_the_same_bits(tmp_path):
-    g, r = _scene(tmp_path, n=2000, seed=8)
-    cam = front_camera(96, 72)
+def test_a_kept_view_is_lifted_from_its_kept_visibility_with_the_same_bits(tmp_path, monkeypatch):
+    r = _trained_like(tmp_path)
+    cam = front_camera(160, 120)
     plain = [lift_mask(*r.prepare(cam), m) for m in _masks(cam)]
     r.keep_views(1 << 30, [cam])
+    partial = []
+    whole = lift_module.label_sums
+    monkeypatch.setattr(
+        lift_module,
+        "label_sums",
+        lambda *a: partial.append(len(a) > 5 and a[5] is not None) or whole(*a),
+    )
     kept = [r.lift(cam, m) for m in _masks(cam)]
+    # the visibility (a whole walk), then the corner, the blob (too many tiles: whole), the
+    # pixel, the empty mask (no tile) and the full one (whole)
+    assert partial == [False, True, False, True, True, False]
     assert any(k[0] == "visibility" for k in r._kept)  # kept beside the projection
     for (a1, a0), (b1, b0) in zip(plain, kept, strict=True):
         assert np.array_equal(a1, b1) and np.array_equal(a0, b0)
     with pytest.raises(ValueError, match="visibility"):
         lift_mask(*r.prepare(cam), _masks(cam)[0], np.zeros(5))
+    with pytest.raises(ValueError, match="mask"):
+        r.lift(cam, np.zeros((cam.height - 2, cam.width), bool))  # same tiles, not the view's
 
 
 def test_lift_refuses_a_mask_of_another_size(tmp_path):
