@@ -295,6 +295,8 @@ def _walk(mode: int, proj: Projected, bins: Bins, width: int, height: int, **arr
     unknown = set(arrays) - set(_UNUSED)
     if unknown:
         raise TypeError(f"_walk: unknown arrays {sorted(unknown)}")
+    if "tile_list" in arrays and len(arrays["tile_list"]) == 0:
+        return  # the kernel reads an empty list as every tile; a list given empty is none
     args = {
         **_UNUSED,
         **arrays,
@@ -514,8 +516,6 @@ def label_sums(
     lane_ptr = np.zeros(lanes + 1, np.int64)
     np.cumsum([len(d) for d in dealt], out=lane_ptr[1:])
     sums = np.zeros((lanes, proj.means2d.shape[0], n_labels), np.float32)
-    if lane_ptr[-1] == 0:  # an empty tile_list would tell the kernel: every tile
-        return sums
     _walk(
         LIFT,
         proj,
@@ -554,11 +554,10 @@ def render(
     alpha = alloc((height, width), np.float32)
     depth = alloc((height, width), np.float32)
     more = {} if tiles is None else {"tile_list": np.ascontiguousarray(tiles, np.int64)}
-    if tiles is None or len(tiles):  # an empty tile_list would tell the kernel: every tile
-        _walk(
-            RENDER, proj, bins, width, height, colors=colors, out=out, alpha_out=alpha,
-            depth_out=depth, **more,
-        )  # fmt: skip
+    _walk(
+        RENDER, proj, bins, width, height, colors=colors, out=out, alpha_out=alpha,
+        depth_out=depth, **more,
+    )  # fmt: skip
     if background is not None:
         out += (1.0 - alpha)[:, :, None] * np.asarray(background, np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):

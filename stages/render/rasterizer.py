@@ -127,8 +127,8 @@ class Rasterizer:
         if mask.shape != (cam.height, cam.width):
             raise ValueError(f"mask {mask.shape} != view {cam.name}'s ({cam.height}, {cam.width})")
         proj, bins = self.prepare(cam)
-        keeps = self._keep_bytes > 0 and _camera_key(cam) in self._keepable
-        return lift_mask(proj, bins, mask, self.visibility(cam) if keeps else None)
+        kept = self._keeps(_camera_key(cam))
+        return lift_mask(proj, bins, mask, self.visibility(cam) if kept else None)
 
     def view(self, cam: Camera) -> View:
         """The Gaussians `cam` sees, in rows of their own (what a render walks; see `View`)."""
@@ -142,8 +142,12 @@ class Rasterizer:
         self._keep(key, out, arrays)
         return out
 
+    def _keeps(self, camera_key: tuple) -> bool:
+        """Whether the camera's results are kept (keep_views named it, with a budget)."""
+        return self._keep_bytes > 0 and camera_key in self._keepable
+
     def _keep(self, key: tuple, value: Any, parts: list[Any]) -> None:
-        if self._keep_bytes <= 0 or key[1:] not in self._keepable:
+        if not self._keeps(key[1:]):
             return
         # a projection may hand the scene's own arrays through (its opacities): those are
         # neither counted nor made read-only

@@ -205,6 +205,12 @@ def test_selection_masks_walk_only_the_tiles_the_selection_is_drawn_in(tmp_path)
     tiles = tiles_holding(bins, corner)
     assert corner.sum() > 5 and 0 < len(tiles) < bins.tiles_x * bins.tiles_y
     assert selection_mask(proj, bins, corner, cam.width, cam.height).any()
+    # a tile list given empty walks no tile (the kernel's own empty list means every tile)
+    ones = np.ones((g.count, 1), np.float32)
+    assert render(proj, bins, ones, cam.width, cam.height).alpha.any()
+    assert not render(
+        proj, bins, ones, cam.width, cam.height, tiles=np.zeros(0, np.int64)
+    ).alpha.any()
 
 
 def test_selection_masks_are_each_selections_mask_in_one_walk(tmp_path):
