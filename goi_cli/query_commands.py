@@ -241,7 +241,7 @@ def _lifted_answer(  # noqa: ANN202
         )
         renderer = SemanticRenderer(scene.gaussians, f)
         rast = renderer.rast
-    grow = open_growing(src, scene, refine, TERMINAL)
+    grow = open_growing(src, scene, refine, TERMINAL, rp)
     try:
         masks = res_source(src.res_masks, src.bundle, prompt, rast, src.res_index, scene, grow)
         revise = sam_reviser(rp, scene, rast, src.bundle, masks, report=TERMINAL)

@@ -36,6 +36,7 @@ from stages.query.point_files import Points, open_pointer, write_pointed_selecti
 from stages.query.prompts import Prompt, text_embedding
 from stages.query.reprompt import RepromptParams, sam_reviser
 from stages.query.res import NothingFound, res_source
+from stages.query.res_index import GrowingIndex
 from stages.query.selection import Selection, select, write_selection
 from stages.render.rasterizer import KEEP_VIEWS_BYTES, Rasterizer
 from stages.scene.cameras import Camera
@@ -65,7 +66,9 @@ class PromptSources:
     res_index: Path | None = None
     """RES index of the scene (goi index-res) made with --bundle: only the bundle's prompt
     side runs (seconds for every training view), on the scene's photos; --lift then lifts
-    every indexed view by default."""
+    every indexed view by default. With --res-masks and --refine sam: the index of the SAM
+    bundle, which keeps the image side of the views the refinement asks (made and grown as
+    the query needs), so that the next query encodes none of them again."""
 
 
 @dataclass
@@ -284,16 +287,27 @@ def check_field_free(lp: LiftParams, sources: PromptSources) -> None:
 def check_refine(refine: RefineParams, lp: LiftParams, sources: PromptSources) -> None:
     """--progressive (and --res-views all) only where they mean something."""
     refine.check(lp.lift)
-    if refine.progressive and sources.res_index is None:
+    if refine.progressive and (sources.res_index is None or sources.res_masks is not None):
         raise GoiError(
-            "--progressive: only with --res-index FILE (the answer refines as the views it "
-            "rests on are indexed)"
+            "--progressive: only with --res-index FILE and no --res-masks (the answer refines "
+            "as the views it rests on are indexed)"
         )
 
 
-def open_growing(sources: PromptSources, scene: Scene, refine: RefineParams, report: Report):  # noqa: ANN201
-    """The lifted route's RES index, which grows (None without --res-index)."""
-    if sources.res_index is None or sources.res_masks is not None:
+def open_growing(
+    sources: PromptSources,
+    scene: Scene,
+    refine: RefineParams,
+    report: Report,
+    reprompt: RepromptParams | None = None,
+) -> GrowingIndex | None:
+    """The lifted route's RES index, which grows (None without --res-index). Beside
+    --res-masks it keeps SAM's image side for --refine sam only: the masks come from the
+    files, and the index spares a later query the views' image encodings (res_source
+    refuses the pair otherwise)."""
+    if sources.res_index is None:
+        return None
+    if sources.res_masks is not None and (reprompt is None or reprompt.refine != "sam"):
         return None
     from stages.query.res import growing_index
 
@@ -323,7 +337,7 @@ def _run_lifted(
     from stages.query.lift_files import answer_prompt
 
     rast = renderer if isinstance(renderer, Rasterizer) else renderer.rast
-    grow = open_growing(sources, scene, refine, report)
+    grow = open_growing(sources, scene, refine, report, reprompt)
     pdir = Path(run.out) / prompt.name
 
     def write(ans: LiftedAnswer, done: int = 0, total: int = 0) -> QueryResult:
@@ -432,7 +446,7 @@ def _run_pointed(
         if field_path is not None:
             text, _ = text_embedding(prompt.text, renderer.field.codebook.shape[1],
                                      sources.text_embeddings, sources.bundle)  # fmt: skip
-        grow = open_growing(sources, scene, refine, report)
+        grow = open_growing(sources, scene, refine, report, reprompt)
         try:
             masks = res_source(sources.res_masks, sources.bundle, prompt, rast,
                                sources.res_index, scene, grow)  # fmt: skip

